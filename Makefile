@@ -1,0 +1,28 @@
+# `make demo` runs the main job, `make test` the test suite; both create .venv on first use.
+# The pinned torch is installed first so that the `torch>=2.2` range does not pull a CUDA build;
+# override it elsewhere, e.g. `make test TORCH=torch`.
+PYTHON ?= python3
+TORCH ?= torch==2.13.0
+VENV ?= .venv
+PY := $(VENV)/bin/python
+
+.PHONY: demo test bench clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q "$(TORCH)"
+	$(PY) -m pip install -q -e ".[test,experiments]"
+	touch $@
+
+demo: $(VENV)/.installed
+	$(PY) experiments/demo_filters.py --out results/demo
+
+test: $(VENV)/.installed
+	$(PY) -m pytest tests
+
+bench: $(VENV)/.installed
+	$(PY) experiments/bench_sample.py
+
+clean:
+	rm -rf $(VENV) results

@@ -1,0 +1,5 @@
+"""difftex: differentiable texture mapping for PyTorch.
+
+Conventions (uv origin, tensor layouts, clip space, pixel centres) are in
+DESIGN.md; this module only re-exports the public API.
+"""
