@@ -1,0 +1,90 @@
+"""Wrap modes: how integer texel indices outside the texture map back into it.
+
+Every filter asks this one module which texel an out-of-range tap reads, so
+repeat / clamp / mirror / border behave the same for nearest, bilinear,
+bicubic and the mip-mapped filters built on them.
+
+The modes and their `torch.nn.functional.grid_sample` counterparts
+(``align_corners=False``):
+
+=========  ==========================================  ======================
+mode       texel read for index ``i`` of an axis of n  grid_sample padding
+=========  ==========================================  ======================
+repeat     ``i mod n``                                 (none: tile 3x3)
+clamp      ``min(max(i, 0), n - 1)``                   ``"border"``
+mirror     ``i mod 2n``, reflected into ``[0, n)``      ``"reflection"``
+border     ``i`` if inside, else the border constant   ``"zeros"``
+=========  ==========================================  ======================
+"""
+from __future__ import annotations
+
+from typing import Sequence, Union
+
+import torch
+from torch import Tensor
+
+WRAP_MODES = ("repeat", "clamp", "mirror", "border")
+
+Wrap = Union[str, Sequence[str]]
+
+
+def parse_wrap(wrap: Wrap) -> tuple[str, str]:
+    """Normalise ``wrap`` to a ``(wrap_u, wrap_v)`` pair of known modes.
+
+    Args:
+        wrap: one mode for both axes, or a pair ``(wrap_u, wrap_v)``;
+            u runs along the texture width, v along its height.
+
+    Raises ValueError naming ``wrap`` for unknown modes or a wrong length,
+    TypeError for anything that is not a string or a pair of strings.
+    """
+    if isinstance(wrap, str):
+        pair = (wrap, wrap)
+    elif isinstance(wrap, (tuple, list)):
+        if len(wrap) != 2:
+            raise ValueError(f"wrap: expected one mode or a pair (wrap_u, wrap_v), got {len(wrap)} items {wrap!r}")
+        pair = tuple(wrap)
+    else:
+        raise TypeError(f"wrap: expected a str or a (wrap_u, wrap_v) pair, got {type(wrap).__name__}")
+    for mode in pair:
+        if not isinstance(mode, str):
+            raise TypeError(f"wrap: modes must be strings, got {type(mode).__name__}")
+        if mode not in WRAP_MODES:
+            raise ValueError(f"wrap: unknown mode {mode!r}; expected one of {WRAP_MODES}")
+    return pair  # type: ignore[return-value]
+
+
+def wrap_index(i: Tensor, n: int, mode: str) -> tuple[Tensor, Tensor | None]:
+    """Map integer texel indices of one axis into ``[0, n)``.
+
+    Args:
+        i: float tensor holding integer values (the result of ``floor``);
+            NaN and +-inf are tolerated and land on some in-range texel, so
+            a bad coordinate never reads outside the texture (its weights
+            carry the NaN instead).
+        n: texels along this axis (>= 1).
+        mode: one of ``WRAP_MODES``.
+
+    Returns:
+        ``(index, valid)``: int64 indices in ``[0, n)``, and for ``"border"``
+        a bool mask of taps that fall inside the texture (the others must
+        read the border constant); ``None`` for the other modes.
+    """
+    # fmod is exact for floats of any size, unlike i - floor(i / n) * n, so
+    # uv of 1e6 with repeat still picks the right texel of its period.
+    i = torch.nan_to_num(i, nan=0.0, posinf=0.0, neginf=0.0)
+    if mode == "repeat":
+        r = torch.fmod(i, n)
+        r = torch.where(r < 0, r + n, r)
+        return r.long().clamp_(0, n - 1), None
+    if mode == "mirror":
+        r = torch.fmod(i, 2 * n)
+        r = torch.where(r < 0, r + 2 * n, r)
+        r = torch.where(r >= n, 2 * n - 1 - r, r)
+        return r.long().clamp_(0, n - 1), None
+    if mode == "clamp":
+        return i.clamp(0, n - 1).long(), None
+    if mode == "border":
+        valid = (i >= 0) & (i <= n - 1)
+        return i.clamp(0, n - 1).long(), valid
+    raise ValueError(f"wrap: unknown mode {mode!r}; expected one of {WRAP_MODES}")
