@@ -57,7 +57,8 @@ def axis_taps(x: Tensor, n: int, kind: str, mode: str):
     if kind == "nearest":
         # torch.round rounds half to even, like grid_sample's nearbyint.
         idx, valid = wrap_index(torch.round(x), n, mode)
-        return [(idx, valid, torch.ones_like(x), None)]
+        # 1 where x is finite, NaN where it is not: a bad uv shows in its pixel.
+        return [(idx, valid, 1 + 0 * x, None)]
     base = torch.floor(x)
     t = x - base
     if kind == "linear":
