@@ -6,3 +6,7 @@ DESIGN.md; this module only re-exports the public API.
 
 from .sample import sample
 from .wrap import WRAP_MODES
+from . import io, mapping
+from .io import Mesh, load_mesh, load_texture, save_image
+from .mapping import (planar_uv, cylindrical_uv, spherical_uv, box_uv, normal_uv,
+                      direction_to_equirect_uv, direction_to_cube, texture_matrix, uv_transform)
