@@ -19,7 +19,11 @@ Singular points.  The angle ``phi = atan2(b, a)`` is undefined on the axis
 (``a = b = 0``, the poles of a sphere, the axis of a cylinder) and the polar
 angle is undefined at the centre.  Closer than :data:`EPS` (in the units of
 the points) to the axis, ``phi`` is taken as 0 (so ``u = 0.5``); at the
-centre itself the polar angle is pi/2 (``v = 0.5``).  Denominators of the
+centre itself the polar angle is pi/2 (``v = 0.5``).  Exactly on the axis
+the distance to it is a cone point without a linear derivative, and its
+derivative (like phi's) is taken as 0 there, so uv_dx / uv_dy are 0 there
+except the cylinder's height term; just off it (r >= EPS) they are exact and grow
+like 1 / r, as the true footprint does.  Denominators of the
 Jacobians are clamped at ``EPS**2`` and the square root / atan2 are guarded
 with the double-``where`` trick, so outputs and gradients stay finite
 (large near the axis, where the true derivative diverges) and never NaN.

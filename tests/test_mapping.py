@@ -1,0 +1,384 @@
+"""Tests for difftex.mapping: values, analytic screen-space derivatives, seams, poles, gradcheck."""
+
+import math
+
+import pytest
+import torch
+
+from difftex import mapping as M
+
+F64 = torch.float64
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+AXES = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=F64)
+
+# Central differences with h = 1e-6 in float64: truncation O(h^2) and rounding
+# O(1e-16 / h) keep the error far below this tolerance.
+FD_H = 1e-6
+FD_TOL = 1e-7
+
+
+def _gen(seed):
+    return torch.Generator().manual_seed(seed)
+
+
+def _fd(fn, p, dp, h=FD_H):
+    """Central difference of fn along dp (uv per unit of dp)."""
+    return (fn(p + h * dp) - fn(p - h * dp)) / (2 * h)
+
+
+# mapping name -> (uv-only function, function taking derivatives) on [..., 3] inputs
+MAPPINGS = {
+    "planar": lambda p, **k: M.planar_uv(p, (0.1, -0.2, 0.3), (0.5, 0.1, 0.0), (0.0, -0.4, 0.2), **k),
+    "cylindrical": lambda p, **k: M.cylindrical_uv(p, (0.1, 0.2, -0.1), (0.0, 0.0, 2.0), **k),
+    "cylindrical_tilted": lambda p, **k: M.cylindrical_uv(p, (0.0, 0.0, 0.0), (0.3, 1.0, 0.2), **k),
+    "spherical": lambda p, **k: M.spherical_uv(p, (0.1, 0.2, -0.1), **k),
+    "normal": lambda p, **k: M.normal_uv(p, **({"normals_dx": k["points_dx"], "normals_dy": k["points_dy"]} if k else {})),
+    "equirect": lambda p, **k: M.direction_to_equirect_uv(p, **({"dirs_dx": k["points_dx"], "dirs_dy": k["points_dy"]} if k else {})),
+    "cube": lambda p, **k: (lambda r: r[1] if not k else r[1:])(M.direction_to_cube(p, **({"dirs_dx": k["points_dx"], "dirs_dy": k["points_dy"]} if k else {}))),
+    "box": lambda p, **k: M.box_uv(p, torch.tensor([0.2, -1.0, 0.3], dtype=p.dtype, device=p.device), center=(0.1, 0.0, 0.0), size=2.5, **k),
+}
+
+
+def _safe_points(n, seed):
+    """Points away from every seam / pole / face edge of the mappings above."""
+    g = _gen(seed)
+    pts = []
+    while len(pts) < n:
+        p = torch.randn(3, generator=g, dtype=F64)
+        q = p - torch.tensor([0.1, 0.2, -0.1], dtype=F64)
+        # spherical / cylindrical (z axis): |phi| < pi - 0.3, r_xy > 0.3
+        if q[:2].norm() < 0.3 or abs(math.atan2(q[1], q[0])) > math.pi - 0.3:
+            continue
+        if p[:2].norm() < 0.3 or abs(math.atan2(p[1], p[0])) > math.pi - 0.3:  # normal
+            continue
+        if math.hypot(p[0], p[2]) < 0.3 or abs(math.atan2(p[0], -p[2])) > math.pi - 0.3:  # equirect
+            continue
+        a = p.abs().sort().values  # cube: clear major axis
+        if a[2] - a[1] < 0.2:
+            continue
+        pts.append(p)
+    return torch.stack(pts)
+
+
+# ----------------------------------------------------------------- values
+
+
+def test_spherical_known_points():
+    c = torch.tensor([1.0, 2.0, 3.0], dtype=F64)
+    pts = torch.cat([AXES * 2.5, torch.zeros(1, 3, dtype=F64)]) + c
+    uv = M.spherical_uv(pts, c)
+    # +x: phi 0; -x: phi = pi (atan2(+0, -1)); +y: pi/2; -y: -pi/2; poles u = 0.5 by definition
+    expected = [[0.5, 0.5], [1.0, 0.5], [0.75, 0.5], [0.25, 0.5], [0.5, 0.0], [0.5, 1.0], [0.5, 0.5]]
+    assert torch.allclose(uv, torch.tensor(expected, dtype=F64), atol=1e-15)
+    # a point at 45 degrees latitude: v = theta / pi = 0.25
+    p = torch.tensor([[math.sqrt(0.5), 0.0, math.sqrt(0.5)]], dtype=F64)
+    assert M.spherical_uv(p).flatten().tolist() == pytest.approx([0.5, 0.25], abs=1e-15)
+    # the seed formula v = arccos(z / r) / pi on random points
+    q = torch.randn(50, 3, generator=_gen(1), dtype=F64)
+    ref_v = torch.arccos(q[:, 2] / q.norm(dim=1)) / math.pi
+    ref_u = (torch.atan2(q[:, 1], q[:, 0]) + math.pi) / (2 * math.pi)
+    assert torch.allclose(M.spherical_uv(q), torch.stack([ref_u, ref_v], 1), atol=1e-14)
+
+
+def test_cylindrical_known_points():
+    c = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
+    axis = torch.tensor([0.0, 0.0, 2.0], dtype=F64)  # height 4: z from -1 to 3
+    pts = torch.tensor([[1, 0, 3], [0, 1, 1], [-1, 0, -1], [0, -1, 2], [0, 0, 1]], dtype=F64)
+    uv = M.cylindrical_uv(pts, c, axis)
+    expected = [[0.5, 0.0], [0.75, 0.5], [1.0, 1.0], [0.25, 0.25], [0.5, 0.5]]
+    assert torch.allclose(uv, torch.tensor(expected, dtype=F64), atol=1e-15)
+    # any axis: with axis +y and ref +z, phi is measured from z towards y x z = x
+    uv = M.cylindrical_uv(torch.tensor([[0.0, 0.5, 1.0], [1.0, -0.5, 0.0]], dtype=F64), (0, 0, 0),
+                          (0.0, 0.5, 0.0), ref=(0.0, 0.0, 1.0))
+    assert uv.flatten().tolist() == pytest.approx([0.5, 0.0, 0.75, 1.0], abs=1e-15)
+    # u of a z-axis cylinder equals the spherical u (documented default frame)
+    q = torch.randn(20, 3, generator=_gen(2), dtype=F64)
+    assert torch.allclose(M.cylindrical_uv(q, (0, 0, 0), (0, 0, 1.0))[:, 0], M.spherical_uv(q)[:, 0], atol=1e-14)
+
+
+def test_planar_on_axes():
+    pts = torch.tensor([[1.0, 1.0, 0.0], [3.0, 1.0, 0.0], [1.0, -1.0, 0.0], [3.0, -1.0, 5.0]], dtype=F64)
+    # square [1, 3] x [-1, 1] in the z = 0 plane, image upright for y up
+    uv = M.planar_uv(pts, (1.0, 1.0, 0.0), (0.5, 0.0, 0.0), (0.0, -0.5, 0.0))
+    assert uv.tolist() == [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]
+
+
+def test_normal_uv_is_spherical_of_normal():
+    n = torch.randn(30, 3, generator=_gen(3), dtype=F64)
+    assert torch.allclose(M.normal_uv(n), M.spherical_uv(n), atol=0)
+    assert torch.allclose(M.normal_uv(n * 7.0), M.normal_uv(n), atol=1e-15)
+
+
+def test_equirect_convention_and_inverse():
+    uv = M.direction_to_equirect_uv(AXES)
+    #            +x           -x            +y (up)      -y           +z (seam)    -z (front)
+    expected = [[0.75, 0.5], [0.25, 0.5], [0.5, 0.0], [0.5, 1.0], [1.0, 0.5], [0.5, 0.5]]
+    assert torch.allclose(uv, torch.tensor(expected, dtype=F64), atol=1e-15)
+    d = torch.nn.functional.normalize(torch.randn(100, 3, generator=_gen(4), dtype=F64), dim=-1)
+    assert torch.allclose(M.equirect_uv_to_direction(M.direction_to_equirect_uv(d)), d, atol=1e-13)
+    uv = torch.rand(100, 2, generator=_gen(5), dtype=F64) * 0.98 + 0.01
+    assert torch.allclose(M.direction_to_equirect_uv(M.equirect_uv_to_direction(uv)), uv, atol=1e-13)
+
+
+def test_cube_faces_centres_and_orientation():
+    face, uv = M.direction_to_cube(AXES * 3.0)
+    assert face.tolist() == [0, 1, 2, 3, 4, 5]
+    assert torch.equal(uv, torch.full((6, 2), 0.5, dtype=F64))
+    assert M.CUBE_FACES == ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+    # OpenGL table 8.19, one direction per face with (s_c, t_c) = (+0.5, +0.5) |m_a| -> uv (0.75, 0.75)
+    dirs = torch.tensor([[1, -1, -1], [-1, -1, 1], [1, 1, 1], [1, -1, -1], [1, -1, 1], [-1, -1, -1]], dtype=F64)
+    # add a bias on the major axis so the face is unambiguous
+    dirs = dirs * 0.5 + AXES * 0.5
+    face, uv = M.direction_to_cube(dirs)
+    assert face.tolist() == [0, 1, 2, 3, 4, 5]
+    assert torch.allclose(uv, torch.full((6, 2), 0.75, dtype=F64), atol=1e-15)
+    # round trip through cube_to_direction
+    d = torch.randn(200, 3, generator=_gen(6), dtype=F64)
+    face, uv = M.direction_to_cube(d)
+    back = M.cube_to_direction(face, uv)
+    assert torch.allclose(back, d / d.abs().amax(dim=-1, keepdim=True), atol=1e-14)
+
+
+def test_box_uv_faces_and_layouts():
+    # on the surface of the box, box_uv equals the cube map of (p - center)
+    c = torch.tensor([0.5, -1.0, 2.0], dtype=F64)
+    g = _gen(7)
+    d = torch.randn(200, 3, generator=g, dtype=F64)
+    d = d / d.abs().amax(dim=-1, keepdim=True)  # on [-1, 1]^3's surface
+    face_n = torch.argmax(d.abs(), dim=-1)
+    normals = torch.zeros_like(d).scatter(-1, face_n[:, None], torch.gather(d, -1, face_n[:, None]).sign())
+    uv = M.box_uv(c + 1.5 * d, normals, center=c, size=3.0)
+    face, uv_cube = M.direction_to_cube(d)
+    assert torch.allclose(uv, uv_cube, atol=1e-14)
+    # the face comes from the normal, not the position: a point on the +X side
+    # with a +Y normal is projected along y
+    p = torch.tensor([[0.5, 0.1, 0.25]], dtype=F64)
+    # +Y face: (s_c, t_c) = (x, z) / half size -> uv ((1 + 1) / 2, (0.5 + 1) / 2)
+    assert M.box_uv(p, torch.tensor([[0.0, 1.0, 0.0]], dtype=F64)).flatten().tolist() == pytest.approx([1.0, 0.75], abs=1e-15)
+    # atlas: face f goes to column f % 3, row f // 3
+    uv_atlas = M.box_uv(c + 1.5 * d, normals, center=c, size=3.0, layout="atlas")
+    cell = torch.stack([face % 3, face // 3], -1).to(F64)
+    assert torch.allclose(uv_atlas, (uv_cube + cell) / torch.tensor([3.0, 2.0], dtype=F64), atol=1e-14)
+
+
+def test_batched_shapes_broadcast_and_dtype():
+    p = torch.randn(2, 4, 5, 3, generator=_gen(8))
+    centers = torch.randn(2, 1, 1, 3, generator=_gen(9))
+    uv = M.spherical_uv(p, centers)
+    assert uv.shape == (2, 4, 5, 2) and uv.dtype == torch.float32
+    assert torch.allclose(uv[1], M.spherical_uv(p[1], centers[1, 0, 0]))
+    uv64 = M.spherical_uv(p.double(), centers.double())
+    assert uv64.dtype == F64
+    # float32 agrees with float64 away from the seam to float32 precision
+    away = (uv64[..., 0] - 0.5).abs() < 0.45
+    assert (uv.double() - uv64)[away].abs().max().item() < 1e-5
+    out = M.cylindrical_uv(p, centers, torch.tensor([0.0, 1.0, 0.0]),
+                           points_dx=torch.ones_like(p), points_dy=torch.ones(3))
+    assert [t.shape for t in out] == [(2, 4, 5, 2)] * 3
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_devices(device):
+    p = torch.randn(10, 3, device=device, dtype=F64)
+    for name, fn in MAPPINGS.items():
+        out = fn(p, points_dx=torch.ones_like(p), points_dy=torch.ones_like(p))
+        assert all(t.device == p.device and t.dtype == F64 for t in out), name
+    uv = M.box_uv(p, p, layout="atlas")
+    assert uv.device == p.device
+    face, _ = M.direction_to_cube(p)
+    assert M.cube_to_direction(face, torch.full((10, 2), 0.5, device=device)).device == p.device
+    m = M.uv_transform(angle=torch.tensor(0.5, device=device))
+    assert M.texture_matrix(torch.rand(10, 2, device=device), m).device == p.device
+
+
+# ----------------------------------------------------------------- derivatives
+
+
+@pytest.mark.parametrize("name", list(MAPPINGS))
+def test_analytic_derivatives_match_finite_differences(name):
+    fn = MAPPINGS[name]
+    p = _safe_points(40, 10)
+    g = _gen(11)
+    dx = torch.randn(p.shape, generator=g, dtype=F64) * 0.01
+    dy = torch.randn(p.shape, generator=g, dtype=F64) * 0.01
+    uv, uv_dx, uv_dy = fn(p, points_dx=dx, points_dy=dy)
+    assert torch.equal(uv, fn(p))
+    # the derivative is linear in dp: compare per unit dp
+    assert (uv_dx - _fd(fn, p, dx / 0.01) * 0.01).abs().max().item() < FD_TOL
+    assert (uv_dy - _fd(fn, p, dy / 0.01) * 0.01).abs().max().item() < FD_TOL
+
+
+@pytest.mark.parametrize("name", ["spherical", "cylindrical", "normal", "equirect"])
+def test_seam_derivatives_do_not_jump(name):
+    fn = MAPPINGS[name]
+    c = torch.tensor([0.1, 0.2, -0.1], dtype=F64) if name in ("spherical", "cylindrical") else torch.zeros(3, dtype=F64)
+    # a row of 64 "pixels" walking around the axis, through the seam
+    t = torch.linspace(math.pi - 0.2, math.pi + 0.2, 64, dtype=F64)
+    if name == "equirect":  # phi = atan2(x, -z), seam at +z
+        p = torch.stack([torch.sin(t), 0.3 * torch.ones_like(t), -torch.cos(t)], -1)
+        dp = torch.stack([torch.cos(t), torch.zeros_like(t), torch.sin(t)], -1) * (t[1] - t[0])
+    else:  # phi = atan2(y, x), seam at -x
+        p = c + torch.stack([torch.cos(t), torch.sin(t), 0.3 * torch.ones_like(t)], -1)
+        dp = torch.stack([-torch.sin(t), torch.cos(t), torch.zeros_like(t)], -1) * (t[1] - t[0])
+    uv, uv_dx, _ = fn(p, points_dx=dp, points_dy=dp)
+    step = (t[1] - t[0]).item() / (2 * math.pi)  # the true du per pixel
+    fd = uv[1:, 0] - uv[:-1, 0]
+    assert fd.abs().max().item() > 0.9  # finite differences jump by a whole texture width
+    assert torch.allclose(uv_dx[:, 0], torch.full_like(t, step), rtol=1e-12)  # analytic: constant
+    assert (uv_dx[1:] - uv_dx[:-1]).abs().max().item() < 1e-12
+
+
+def test_texture_matrix_derivatives_and_round_trip():
+    uv = torch.rand(50, 2, generator=_gen(12), dtype=F64)
+    m = M.uv_transform(torch.tensor([0.1, -0.3], dtype=F64), 0.7, torch.tensor([2.0, 0.5], dtype=F64))
+    back = M.texture_matrix(M.texture_matrix(uv, m), torch.linalg.inv(m))
+    assert (back - uv).abs().max().item() < 1e-14
+    proj = m.clone()
+    proj[2] = torch.tensor([0.2, -0.1, 1.0], dtype=F64)  # projective: w in [0.9, 1.2]
+    back = M.texture_matrix(M.texture_matrix(uv, proj), torch.linalg.inv(proj))
+    assert (back - uv).abs().max().item() < 1e-14
+    du = torch.randn(50, 2, generator=_gen(13), dtype=F64)
+    for mat in (m, proj):
+        _, d1, d2 = M.texture_matrix(uv, mat, uv_dx=du, uv_dy=-du)
+        fd = (M.texture_matrix(uv + FD_H * du, mat) - M.texture_matrix(uv - FD_H * du, mat)) / (2 * FD_H)
+        assert (d1 - fd).abs().max().item() < FD_TOL and (d2 + fd).abs().max().item() < FD_TOL
+    # affine: derivatives are the linear part
+    assert torch.allclose(M.texture_matrix(uv, m, uv_dx=du, uv_dy=du)[1], du @ m[:2, :2].T, atol=1e-15)
+
+
+def test_uv_transform_semantics():
+    pts = torch.tensor([[0.5, 0.5], [1.0, 0.5], [1.0, 1.0]], dtype=F64)
+    # rotation by pi/2 about the centre turns the u axis to +v (clockwise as displayed)
+    r = M.texture_matrix(pts, M.uv_transform(angle=math.pi / 2, dtype=F64))
+    assert torch.allclose(r, torch.tensor([[0.5, 0.5], [0.5, 1.0], [0.0, 1.0]], dtype=F64), atol=1e-15)
+    s = M.texture_matrix(pts, M.uv_transform(scale=2.0, shift=(0.1, 0.0), dtype=F64))
+    assert torch.allclose(s, torch.tensor([[0.6, 0.5], [1.6, 0.5], [1.6, 1.5]], dtype=F64), atol=1e-15)
+    assert torch.equal(M.uv_transform(dtype=F64), torch.eye(3, dtype=F64))
+    batch = M.uv_transform(angle=torch.tensor([0.0, 1.0, 2.0]), scale=torch.ones(3, 2))
+    assert batch.shape == (3, 3, 3) and batch.dtype == torch.float32
+
+
+# ----------------------------------------------------------------- gradcheck
+
+
+@pytest.mark.parametrize("name", list(MAPPINGS))
+def test_gradcheck(name):
+    fn = MAPPINGS[name]
+    p = _safe_points(4, 14).requires_grad_()
+    g = _gen(15)
+    dx = (torch.randn(p.shape, generator=g, dtype=F64) * 0.1).requires_grad_()
+    dy = (torch.randn(p.shape, generator=g, dtype=F64) * 0.1).requires_grad_()
+    assert torch.autograd.gradcheck(lambda a, b, c: fn(a, points_dx=b, points_dy=c), (p, dx, dy))
+
+
+def test_gradcheck_parameters():
+    p = _safe_points(4, 16)
+    c = torch.tensor([0.1, 0.2, -0.1], dtype=F64, requires_grad=True)
+    axis = torch.tensor([0.1, -0.2, 1.5], dtype=F64, requires_grad=True)
+    dp = torch.randn(p.shape, generator=_gen(17), dtype=F64)
+    assert torch.autograd.gradcheck(lambda c_, a_: M.cylindrical_uv(p, c_, a_, points_dx=dp, points_dy=dp), (c, axis))
+    assert torch.autograd.gradcheck(lambda c_: M.spherical_uv(p, c_, points_dx=dp, points_dy=dp), (c,))
+    o = torch.zeros(3, dtype=F64, requires_grad=True)
+    au = torch.tensor([1.0, 0.2, 0.0], dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda o_, a_: M.planar_uv(p, o_, a_, (0, 1.0, 0)), (o, au))
+    size = torch.tensor(2.0, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda c_, s_: M.box_uv(p, p, center=c_, size=s_), (c, size))
+    uv = torch.rand(5, 2, generator=_gen(18), dtype=F64, requires_grad=True)
+    ang = torch.tensor(0.3, dtype=F64, requires_grad=True)
+    sh = torch.tensor([0.1, 0.2], dtype=F64, requires_grad=True)
+    sc = torch.tensor([1.5, 0.7], dtype=F64, requires_grad=True)
+    duv = torch.randn(5, 2, generator=_gen(19), dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda u, a, s1, s2, d: M.texture_matrix(u, M.uv_transform(s1, a, s2), uv_dx=d, uv_dy=2 * d),
+        (uv, ang, sh, sc, duv))
+    proj = torch.tensor([[1.0, 0.1, 0.0], [0.2, 0.9, 0.1], [0.1, -0.2, 1.0]], dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda u, m, d: M.texture_matrix(u, m, uv_dx=d, uv_dy=d), (uv, proj, duv))
+
+
+# ----------------------------------------------------------------- singular points
+
+
+SINGULAR = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -2.0], [0.0, 0.0, 0.0], [1e-12, 0.0, 0.5],
+                         [0.0, 1.0, 0.0], [0.0, -1.0, 0.0]], dtype=F64)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("name", ["spherical", "cylindrical", "normal", "equirect", "cube", "box"])
+def test_poles_and_zero_vectors_are_finite(name, dtype):
+    fn = MAPPINGS[name]
+    c = torch.tensor([0.1, 0.2, -0.1], dtype=dtype) if name in ("spherical", "cylindrical") else 0.0
+    p = (SINGULAR.to(dtype) + c).requires_grad_()
+    dx = torch.full_like(p, 0.01).requires_grad_()
+    dy = torch.tensor([0.01, -0.02, 0.03], dtype=dtype).expand_as(p).clone().requires_grad_()
+    outs = fn(p, points_dx=dx, points_dy=dy)
+    for o in outs:
+        assert torch.isfinite(o).all(), name
+    sum(o.sum() for o in outs).backward()
+    for t in (p, dx, dy):
+        assert t.grad is not None and torch.isfinite(t.grad).all(), name
+
+
+def test_pole_values():
+    # documented: within EPS of the axis u = 0.5 and the derivatives of phi and rho are 0
+    # (the cone point has no linear derivative); at the centre v = 0.5 too
+    ones = torch.ones(3, 3, dtype=F64)
+    uv, dx, _ = M.spherical_uv(SINGULAR[:3], points_dx=ones, points_dy=ones)
+    assert uv.tolist() == [[0.5, 0.0], [0.5, 1.0], [0.5, 0.5]]
+    assert dx.tolist() == [[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]]
+    _, cube_uv = M.direction_to_cube(torch.zeros(1, 3, dtype=F64))
+    assert cube_uv.tolist() == [[0.5, 0.5]]
+    assert M.direction_to_equirect_uv(torch.zeros(1, 3, dtype=F64)).tolist() == [[0.5, 0.5]]
+
+
+def test_near_pole_derivatives_are_exact_outside_eps():
+    # at rho = 1e-3 (>> EPS) the analytic derivative still matches finite differences
+    p = torch.tensor([[1e-3, 2e-3, 1.0]], dtype=F64)
+    d = torch.tensor([[0.3, -0.2, 0.1]], dtype=F64)
+    _, uv_dx, _ = M.spherical_uv(p, points_dx=d, points_dy=d)
+    fd = _fd(lambda q: M.spherical_uv(q), p, d, h=1e-8)
+    assert (uv_dx - fd).abs().max().item() < 1e-5 * fd.abs().max().item()
+
+
+# ----------------------------------------------------------------- bad input
+
+
+def test_bad_inputs():
+    p = torch.zeros(4, 3)
+    with pytest.raises(ValueError, match=r"points must have shape \[\.\.\., 3\], got \(4, 2\)"):
+        M.spherical_uv(torch.zeros(4, 2))
+    with pytest.raises(TypeError, match="points must be a floating tensor.*int64"):
+        M.spherical_uv(torch.zeros(4, 3, dtype=torch.int64))
+    with pytest.raises(TypeError, match="points must be a torch.Tensor"):
+        M.spherical_uv([[0.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match=r"center must have shape \[\.\.\., 3\], got \(2,\)"):
+        M.spherical_uv(p, (0.0, 0.0))
+    with pytest.raises(ValueError, match=r"axis must have shape \[\.\.\., 3\], got \(4,\)"):
+        M.cylindrical_uv(p, (0, 0, 0), (0.0, 0.0, 1.0, 0.0))
+    with pytest.raises(ValueError, match=r"axis_v must have shape"):
+        M.planar_uv(p, (0, 0, 0), (1.0, 0, 0), (0.0, 1.0))
+    with pytest.raises(ValueError, match="points_dx and points_dy must be given together, got only points_dx"):
+        M.spherical_uv(p, points_dx=p)
+    with pytest.raises(ValueError, match=r"points_dy must have shape \[\.\.\., 3\], got \(4, 2\)"):
+        M.spherical_uv(p, points_dx=p, points_dy=torch.zeros(4, 2))
+    with pytest.raises(ValueError, match=r"points_dx must broadcast with points \(4, 3\), got \(5, 3\)"):
+        M.spherical_uv(p, points_dx=torch.zeros(5, 3), points_dy=p)
+    with pytest.raises(ValueError, match=r"normals must have shape"):
+        M.normal_uv(torch.zeros(3, 2))
+    with pytest.raises(ValueError, match=r"dirs must have shape"):
+        M.direction_to_cube(torch.zeros(2, 4))
+    with pytest.raises(ValueError, match=r"dirs must have shape"):
+        M.direction_to_equirect_uv(torch.zeros(2, 2))
+    with pytest.raises(ValueError, match="layout must be 'shared' or 'atlas'"):
+        M.box_uv(p, p, layout="cross")
+    with pytest.raises(ValueError, match=r"normals must have shape"):
+        M.box_uv(p, torch.zeros(4, 2))
+    with pytest.raises(ValueError, match=r"matrix must have shape \[\.\.\., 3, 3\], got \(2, 3\)"):
+        M.texture_matrix(torch.zeros(4, 2), torch.zeros(2, 3))
+    with pytest.raises(ValueError, match=r"uv must have shape \[\.\.\., 2\], got \(4, 3\)"):
+        M.texture_matrix(torch.zeros(4, 3), torch.eye(3))
+    with pytest.raises(ValueError, match=r"scale must be a number or have shape \[\.\.\., 2\], got \(3,\)"):
+        M.uv_transform(scale=torch.ones(3))
+    with pytest.raises(ValueError, match=r"shift must have shape"):
+        M.uv_transform(shift=1.0)
+    with pytest.raises(ValueError, match=r"face must have shape"):
+        M.cube_to_direction(torch.zeros(3, dtype=torch.long), torch.zeros(4, 2))
