@@ -10,3 +10,6 @@ from . import io, mapping
 from .io import Mesh, load_mesh, load_texture, save_image
 from .mapping import (planar_uv, cylindrical_uv, spherical_uv, box_uv, normal_uv,
                       direction_to_equirect_uv, direction_to_cube, texture_matrix, uv_transform)
+from .raster import Fragments, rasterize
+from .interpolate import interpolate
+from . import camera
