@@ -13,3 +13,5 @@ from .mapping import (planar_uv, cylindrical_uv, spherical_uv, box_uv, normal_uv
 from .raster import Fragments, rasterize
 from .interpolate import interpolate
 from . import camera
+from .mipmap import Mipmap, mipmap
+from .lod import lod

@@ -1,0 +1,76 @@
+"""Anisotropic filtering: several trilinear taps along the footprint's major axis.
+
+The D3D 11.3 / Feline scheme. The footprint ellipse has the singular values
+``major >= minor`` of the texel Jacobian as its axes (its true axes, not the
+screen axes). A point takes ``N = min(ceil(major / minor), max_aniso)``
+trilinear taps spread evenly over the major axis, at offsets
+``((i + 1/2) / N - 1/2) * major`` for ``i = 0 .. N-1``, each at level
+``log2(major / N) + lod_bias`` and weight ``1 / N``.
+
+Taps are variable per point and flattened into one list (point, tap), so a
+point that needs one tap costs one trilinear tap; all taps go through one
+``trilinear_points`` call and are summed back with one ``index_add``.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from ..lod import Ellipse, Footprint, level
+from .trilinear import trilinear_points
+
+# N = ceil(major / minor) would jump to 2 on rounding noise at an exactly
+# isotropic footprint; a ratio within this of an integer rounds down.
+_RATIO_TOL = 1e-4
+
+
+def tap_count(ell: Ellipse, fp: Footprint, max_aniso: float) -> Tensor:
+    """Trilinear taps per point: ``min(ceil(major / minor), floor(max_aniso))``, at least 1; int64."""
+    cap = max(int(math.floor(max_aniso)), 1)
+    major, minor = ell.major.detach(), ell.minor.detach()
+    ratio = major / torch.where(minor > 0, minor, torch.ones_like(minor))
+    ratio = torch.where(minor > 0, ratio, torch.full_like(ratio, float(cap)))
+    n = torch.ceil(ratio - _RATIO_TOL).clamp_(1, cap)
+    n = torch.where(fp.zero | fp.inf | ~torch.isfinite(n), torch.ones_like(n), n)
+    return n.long()
+
+
+def anisotropic_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse, lod_bias: Tensor | float,
+                       max_aniso: float, wrap_u: str, wrap_v: str, border: float) -> Tensor:
+    """Anisotropic filtering of one texture.
+
+    Args:
+        levels: the pyramid of one texture, ``[1, C, H_k, W_k]`` each.
+        uv: [M, 2] sample points.
+        fp, ell: footprint and its ellipse per point (``difftex.lod``).
+        lod_bias: scalar or [M].
+        max_aniso: most taps per point (>= 1).
+        wrap_u, wrap_v, border: as in ``separable_sample``.
+
+    Returns:
+        [C, M]. Differentiable in the levels, uv, the footprint (through the
+        level and the tap positions; N itself is piecewise constant) and
+        lod_bias.
+    """
+    M = uv.shape[0]
+    H, W = levels[0].shape[-2:]
+    n = tap_count(ell, fp, max_aniso)
+    nf = n.to(uv.dtype)
+    D = level(ell.log2_major - torch.log2(nf), lod_bias, len(levels))
+    if bool((n == 1).all()):
+        return trilinear_points(levels, uv, D, wrap_u, wrap_v, border)
+    # Major axis as a uv vector: direction * length in texels / texture size.
+    scale = torch.exp2(fp.log2_scale).unsqueeze(-1)
+    axis = ell.direction * (ell.major.unsqueeze(-1) * scale) / uv.new_tensor([float(W), float(H)])
+    point = torch.repeat_interleave(torch.arange(M, device=uv.device), n)
+    start = torch.cumsum(n, 0) - n
+    i = torch.arange(point.numel(), device=uv.device) - start[point]
+    nt = nf[point]
+    offset = ((i.to(uv.dtype) + 0.5) / nt - 0.5).unsqueeze(-1)
+    taps = uv[point] + axis[point] * offset
+    vals = trilinear_points(levels, taps, D[point], wrap_u, wrap_v, border)
+    vals = vals / nt
+    return uv.new_zeros((vals.shape[0], M)).index_add(1, point, vals)

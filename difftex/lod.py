@@ -1,0 +1,206 @@
+"""The level-of-detail formula and the pixel footprint, written once for every mip filter.
+
+A pixel's footprint in the texture is the image of the unit pixel under the
+Jacobian ``J = [uv_dx * (W, H), uv_dy * (W, H)]`` (columns: texels per pixel
+column / row of level 0). The mip filters read it three ways:
+
+* trilinear: ``L = max(|J e_x|, |J e_y|)`` (the seed formula);
+* anisotropic: the major axis of the ellipse ``J J^T`` and the number of taps
+  along it;
+* EWA: the ellipse itself, its minor axis choosing the level.
+
+and all turn a length into a level with the same ``level()``:
+``D = clamp(log2(length) + lod_bias, 0, levels - 1)``.
+
+Degenerate footprints never produce NaN, in value or gradient: a zero or
+NaN Jacobian is a zero footprint (level 0), an infinite one an infinite
+footprint (the coarsest level); both pass zero gradient. Lengths are
+computed from ``J / s`` with ``s = max |J_ij|`` (a detached constant per
+pixel; the lengths are homogeneous of degree 1, so the gradient is still
+exact) so that squaring cannot overflow or underflow.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import torch
+from torch import Tensor
+
+# Stands for log2 of a zero / infinite length: far outside any level range,
+# yet finite so that sums with lod_bias stay finite and clamp cleanly.
+_FAR = 1.0e4
+
+
+class Footprint(NamedTuple):
+    """Per-pixel footprint; every field has the pixel shape ``[...]`` unless noted.
+
+    p, q: [..., 2] footprint vectors (texels of level 0 per pixel column /
+        row) divided by ``scale``; zero where the footprint is degenerate.
+    log2_scale: log2 of ``scale`` (detached), 0 where degenerate.
+    zero: bool, footprint treated as a point (zero or NaN derivatives).
+    inf: bool, footprint treated as infinite (an infinite derivative).
+    """
+
+    p: Tensor
+    q: Tensor
+    log2_scale: Tensor
+    zero: Tensor
+    inf: Tensor
+
+
+def footprint(uv_dx: Tensor, uv_dy: Tensor, height: int, width: int) -> Footprint:
+    """Scaled, sanitized footprint vectors of level 0 (see ``Footprint``)."""
+    size = uv_dx.new_tensor([float(width), float(height)])
+    J = torch.cat((uv_dx * size, uv_dy * size), -1)
+    nan = torch.isnan(J).any(-1)
+    inf = torch.isinf(J).any(-1) & ~nan
+    finite = ~(nan | inf)
+    J = torch.where(finite.unsqueeze(-1), J, 0.0)
+    s = J.detach().abs().amax(-1)
+    zero = s == 0
+    s = torch.where(zero, torch.ones_like(s), s)
+    Js = J / s.unsqueeze(-1)
+    zero = zero & finite | nan
+    return Footprint(Js[..., :2], Js[..., 2:], torch.log2(s), zero, inf)
+
+
+def _log2_len2(len2: Tensor, fp: Footprint) -> Tensor:
+    """log2 of a length given its scaled square ``len2``, with the degenerate cases."""
+    ok = ~(fp.zero | fp.inf) & (len2 > 0)
+    # Double where: log2 is only ever evaluated at positive arguments, so the
+    # masked-out pixels get an exact zero gradient instead of 0 * inf = NaN.
+    v = 0.5 * torch.log2(torch.where(ok, len2, torch.ones_like(len2))) + fp.log2_scale
+    far = torch.where(fp.inf, _FAR, -_FAR)
+    return torch.where(ok, v, far.to(v.dtype))
+
+
+def log2_length(fp: Footprint) -> Tensor:
+    """``log2 L``, ``L = max(|uv_dx|, |uv_dy|)`` in texels: the seed's trilinear length."""
+    return _log2_len2(torch.maximum((fp.p * fp.p).sum(-1), (fp.q * fp.q).sum(-1)), fp)
+
+
+def _safe_sqrt(x: Tensor) -> Tensor:
+    pos = x > 0
+    return torch.where(pos, torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
+
+
+class Ellipse(NamedTuple):
+    """Axes of the footprint ellipse (the image of the unit pixel, J J^T), level-0 texels.
+
+    major, minor: [...] the singular values of J (the lengths that the seed's
+        L measures: one pixel step, i.e. the ellipse's full diameters over
+        the unit-diameter pixel), divided by the footprint scale (times
+        ``2 ** log2_scale`` they are texels). ``major >= minor >= 0``.
+    log2_major, log2_minor: [...] log2 of the unscaled lengths, with the
+        degenerate cases of ``Footprint``.
+    direction: [..., 2] unit vector of the major axis in texel space; (1, 0)
+        where the footprint is a circle (any direction would do).
+    jjt: [..., 3] the scaled ``J J^T`` as (xx, xy, yy).
+    """
+
+    major: Tensor
+    minor: Tensor
+    log2_major: Tensor
+    log2_minor: Tensor
+    direction: Tensor
+    jjt: Tensor
+
+
+def ellipse(fp: Footprint) -> Ellipse:
+    """Closed-form singular values and major direction of the 2 x 2 footprint Jacobian."""
+    p, q = fp.p, fp.q
+    a = p[..., 0] * p[..., 0] + q[..., 0] * q[..., 0]
+    c = p[..., 1] * p[..., 1] + q[..., 1] * q[..., 1]
+    b = p[..., 0] * p[..., 1] + q[..., 0] * q[..., 1]
+    half_diff = 0.5 * (a - c)
+    disc = _safe_sqrt(half_diff * half_diff + b * b)
+    lam_max = 0.5 * (a + c) + disc
+    major = _safe_sqrt(lam_max)
+    # minor = |det J| / major: the difference lam_min = (a + c) / 2 - disc
+    # cancels catastrophically for thin ellipses, the product does not.
+    det = (p[..., 0] * q[..., 1] - q[..., 0] * p[..., 1]).abs()
+    major_ok = major > 0
+    minor = torch.where(major_ok, det / torch.where(major_ok, major, torch.ones_like(major)), torch.zeros_like(major))
+    minor = torch.minimum(minor, major)
+    # Direction of the major axis: angle 0.5 * atan2(2b, a - c), undefined
+    # for a circle; there every filter is direction-free, so pick (1, 0).
+    eps = torch.finfo(a.dtype).eps
+    aniso = disc > eps * (a + c)
+    one = torch.ones_like(a)
+    theta = 0.5 * torch.atan2(torch.where(aniso, 2 * b, 0 * one), torch.where(aniso, 2 * half_diff, one))
+    direction = torch.stack((torch.cos(theta), torch.sin(theta)), -1)
+    return Ellipse(major, minor, _log2_len2(major * major, fp), _log2_len2(minor * minor, fp), direction,
+                   torch.stack((a, b, c), -1))
+
+
+def level(log2_len: Tensor, lod_bias: Tensor | float, levels: int) -> Tensor:
+    """The level-of-detail formula: ``D = clamp(log2_len + lod_bias, 0, levels - 1)``.
+
+    A NaN sum (a NaN bias) gives level 0 and zero gradient. The gradient with
+    respect to ``log2_len`` and ``lod_bias`` is 1 inside the clamp range, 0
+    outside.
+    """
+    D = log2_len + lod_bias
+    bad = torch.isnan(D)
+    D = torch.where(bad, torch.zeros_like(D), D)
+    return D.clamp(0.0, float(levels - 1))
+
+
+def _size_and_levels(texture_size: object) -> tuple[int, int, int | None]:
+    from .mipmap import Mipmap, level_count
+    if isinstance(texture_size, Mipmap):
+        H, W = texture_size.shape[-2:]
+        return H, W, len(texture_size)
+    if isinstance(texture_size, Tensor):
+        if texture_size.dim() < 2:
+            raise ValueError(f"texture_size: expected a texture [..., H, W] or (H, W), got a tensor of shape "
+                             f"{tuple(texture_size.shape)}")
+        H, W = texture_size.shape[-2:]
+        return int(H), int(W), None
+    if isinstance(texture_size, (tuple, list)) and len(texture_size) == 2 and all(
+            isinstance(v, int) and not isinstance(v, bool) for v in texture_size):
+        H, W = texture_size
+        if H >= 1 and W >= 1:
+            return H, W, None
+    raise ValueError(f"texture_size: expected (H, W) ints >= 1, a texture tensor [..., H, W] or a Mipmap, "
+                     f"got {texture_size!r}")
+
+
+def lod(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Tensor | object, *,
+        lod_bias: Tensor | float = 0.0, levels: int | None = None) -> Tensor:
+    """The per-pixel mip level that ``filter="trilinear"`` uses.
+
+    Args:
+        uv_dx, uv_dy: [B, Ho, Wo, 2] uv per pixel column / row (DESIGN.md).
+        texture_size: (H, W) of level 0, or the texture [..., H, W], or a Mipmap.
+        lod_bias: added to the level before clamping; scalar or [B, Ho, Wo].
+        levels: number of levels to clamp to; default the Mipmap's count,
+            else the full chain ``1 + ceil(log2(max(H, W)))``.
+
+    Returns:
+        [B, Ho, Wo] ``D = clamp(log2 L + lod_bias, 0, levels - 1)``,
+        ``L = max(|uv_dx * (W, H)|, |uv_dy * (W, H)|)`` in texels.
+
+    Differentiable in uv_dx, uv_dy and lod_bias (zero gradient where
+    clamped); zero / NaN derivatives give level 0 and infinite ones the last
+    level, with zero gradient. Raises ValueError / TypeError naming the
+    argument on bad shapes or dtypes.
+    """
+    from ._checks import check_float, check_same
+    from .mipmap import level_count
+    check_float("uv_dx", uv_dx, 4, last=2, shape_doc="[B, Ho, Wo, 2]")
+    check_float("uv_dy", uv_dy, 4, last=2, shape_doc="[B, Ho, Wo, 2]")
+    check_same("uv_dy", uv_dy, "uv_dx", uv_dx)
+    if uv_dx.shape != uv_dy.shape:
+        raise ValueError(f"uv_dy: expected the shape of uv_dx {tuple(uv_dx.shape)}, got {tuple(uv_dy.shape)}")
+    H, W, n = _size_and_levels(texture_size)
+    if levels is not None:
+        if isinstance(levels, bool) or not isinstance(levels, int) or levels < 1:
+            raise ValueError(f"levels: expected an int >= 1, got {levels!r}")
+        n = levels
+    if n is None:
+        n = level_count(H, W)
+    if isinstance(lod_bias, Tensor):
+        check_float("lod_bias", lod_bias, (0, 3), shape_doc="scalar or [B, Ho, Wo]")
+        check_same("lod_bias", lod_bias, "uv_dx", uv_dx)
+    return level(log2_length(footprint(uv_dx, uv_dy, H, W)), lod_bias, n)
