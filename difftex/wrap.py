@@ -54,14 +54,23 @@ def parse_wrap(wrap: Wrap) -> tuple[str, str]:
     return pair  # type: ignore[return-value]
 
 
+def floor_index(x: Tensor) -> Tensor:
+    """``floor(x)`` as int64, with NaN / inf mapped to 0 and magnitudes capped at 2**52.
+
+    A bad coordinate thus lands on some in-range texel after wrapping and
+    never reads outside the texture; its weights carry the NaN instead. Past
+    2**52 a float has no fractional part left, so capping loses nothing.
+    """
+    i = torch.nan_to_num(torch.floor(x), nan=0.0, posinf=0.0, neginf=0.0)
+    return i.clamp_(-(2.0 ** 52), 2.0 ** 52).long()
+
+
 def wrap_index(i: Tensor, n: int, mode: str) -> tuple[Tensor, Tensor | None]:
     """Map integer texel indices of one axis into ``[0, n)``.
 
     Args:
-        i: float tensor holding integer values (the result of ``floor``);
-            NaN and +-inf are tolerated and land on some in-range texel, so
-            a bad coordinate never reads outside the texture (its weights
-            carry the NaN instead).
+        i: int64 texel indices (e.g. from ``floor_index``); a float tensor is
+            converted by ``floor_index`` first.
         n: texels along this axis (>= 1).
         mode: one of ``WRAP_MODES``.
 
@@ -70,21 +79,16 @@ def wrap_index(i: Tensor, n: int, mode: str) -> tuple[Tensor, Tensor | None]:
         a bool mask of taps that fall inside the texture (the others must
         read the border constant); ``None`` for the other modes.
     """
-    # fmod is exact for floats of any size, unlike i - floor(i / n) * n, so
-    # uv of 1e6 with repeat still picks the right texel of its period.
-    i = torch.nan_to_num(i, nan=0.0, posinf=0.0, neginf=0.0)
+    if i.is_floating_point():
+        i = floor_index(i)
     if mode == "repeat":
-        r = torch.fmod(i, n)
-        r = torch.where(r < 0, r + n, r)
-        return r.long().clamp_(0, n - 1), None
+        return torch.remainder(i, n), None
     if mode == "mirror":
-        r = torch.fmod(i, 2 * n)
-        r = torch.where(r < 0, r + 2 * n, r)
-        r = torch.where(r >= n, 2 * n - 1 - r, r)
-        return r.long().clamp_(0, n - 1), None
+        r = torch.remainder(i, 2 * n)
+        return torch.where(r >= n, 2 * n - 1 - r, r), None
     if mode == "clamp":
-        return i.clamp(0, n - 1).long(), None
+        return i.clamp(0, n - 1), None
     if mode == "border":
-        valid = (i >= 0) & (i <= n - 1)
-        return i.clamp(0, n - 1).long(), valid
+        valid = (i >= 0) & (i < n)
+        return i.clamp(0, n - 1), valid
     raise ValueError(f"wrap: unknown mode {mode!r}; expected one of {WRAP_MODES}")

@@ -8,12 +8,21 @@ import torch
 import torch.nn.functional as F
 
 import difftex
+from difftex.filters import basic
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 GS_MODE = {"nearest": "nearest", "bilinear": "bilinear", "bicubic": "bicubic"}
 # difftex wrap mode -> grid_sample padding_mode (align_corners=False)
 GS_PAD = {"border": "zeros", "clamp": "border", "mirror": "reflection"}
 SIZES = [(7, 10), (8, 8), (5, 1), (1, 6)]
+
+
+@pytest.fixture(params=["fast", "reference"], autouse=True)
+def impl(request, monkeypatch):
+    """Every test runs on the grid_sample-based fast path and on the gather
+    reference (basic.IMPL); double backward always uses the reference."""
+    monkeypatch.setattr(basic, "IMPL", request.param)
+    return request.param
 
 
 def _rand_case(seed, tex_hw, B=2, C=3, out_hw=(6, 5), lo=-1.5, hi=2.5, dtype=torch.float64, device="cpu"):
@@ -253,3 +262,18 @@ def test_different_devices_rejected():
     # The meta device stands in for a second device on a CPU-only machine.
     with pytest.raises(ValueError, match=r"uv: expected device cpu like texture, got shape \(1, 4, 4, 2\)"):
         difftex.sample(torch.rand(1, 3, 4, 4), torch.rand(1, 4, 4, 2, device="meta"))
+
+
+@pytest.mark.parametrize("filt", ["nearest", "bilinear", "bicubic"])
+def test_fast_path_equals_reference_for_every_mode_pair(filt, monkeypatch):
+    tex, uv = _rand_case(12, (5, 4), lo=-4.0, hi=5.0)
+    for wu in difftex.WRAP_MODES:
+        for wv in difftex.WRAP_MODES:
+            fn = lambda t, u: difftex.sample(t, u, filter=filt, wrap=(wu, wv), border_value=0.3)
+            results = []
+            for impl in ("fast", "reference"):
+                monkeypatch.setattr(basic, "IMPL", impl)
+                torch.manual_seed(0)
+                results.append(_grads(fn, tex, uv))
+            for a, b in zip(*results):
+                torch.testing.assert_close(a, b, atol=1e-9, rtol=0, msg=f"{filt} {wu}/{wv}")

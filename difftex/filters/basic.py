@@ -20,7 +20,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..wrap import wrap_index
+from ..wrap import floor_index, wrap_index
+from .fast import fast_forward
 
 KINDS = ("nearest", "linear", "cubic")
 
@@ -40,83 +41,93 @@ def _cubic_far(t: Tensor) -> tuple[Tensor, Tensor]:
     return ((a * t - 5 * a) * t + 8 * a) * t - 4 * a, (3 * a * t - 10 * a) * t + 8 * a
 
 
-def axis_taps(x: Tensor, n: int, kind: str, mode: str):
-    """Texels and weights along one axis.
+# Tap offsets from floor(x) (round(x) for nearest) along one axis.
+_OFFSETS = {"nearest": (0,), "linear": (0, 1), "cubic": (-1, 0, 1, 2)}
 
-    Args:
-        x: continuous texel coordinate, texel ``j`` has its centre at ``j``
-            (``x = u * n - 0.5``).
-        n: texels along the axis.
-        kind: ``"nearest"``, ``"linear"`` or ``"cubic"``.
-        mode: wrap mode of this axis.
+# Bound on gathered texels held at once (K taps x C channels x points):
+# 2**24 floats is 64 MiB in float32.
+_CHUNK_ELEMENTS = 1 << 24
 
-    Returns:
-        list of ``(index, valid, weight, dweight)`` per tap, where ``dweight``
-        is d(weight)/dx (``None`` for nearest, whose weight is constant 1).
-    """
+
+def _axis_weights(t: Tensor, kind: str, derivs: bool) -> tuple[Tensor, Tensor | None]:
+    """Per-tap weights (and d/dx) from the fractional coordinate t [..., M] -> [..., K, M]."""
     if kind == "nearest":
-        # torch.round rounds half to even, like grid_sample's nearbyint.
-        idx, valid = wrap_index(torch.round(x), n, mode)
         # 1 where x is finite, NaN where it is not: a bad uv shows in its pixel.
-        return [(idx, valid, 1 + 0 * x, None)]
-    base = torch.floor(x)
-    t = x - base
+        return (1 + 0 * t).unsqueeze(-2), None
     if kind == "linear":
-        i0, v0 = wrap_index(base, n, mode)
-        i1, v1 = wrap_index(base + 1, n, mode)
-        one = torch.ones_like(t)
-        return [(i0, v0, 1 - t, -one), (i1, v1, t, one)]
-    if kind == "cubic":
-        taps = []
-        w0, d0 = _cubic_far(t + 1)
-        w1, d1 = _cubic_near(t)
-        w2, d2 = _cubic_near(1 - t)
-        w3, d3 = _cubic_far(2 - t)
-        for off, w, d in ((-1, w0, d0), (0, w1, d1), (1, w2, -d2), (2, w3, -d3)):
-            i, v = wrap_index(base + off, n, mode)
-            taps.append((i, v, w, d))
-        return taps
-    raise ValueError(f"filter: unknown separable kind {kind!r}; expected one of {KINDS}")
+        w = torch.stack((1 - t, t), -2)
+        d = torch.stack((-torch.ones_like(t), torch.ones_like(t)), -2) if derivs else None
+        return w, d
+    w0, d0 = _cubic_far(t + 1)
+    w1, d1 = _cubic_near(t)
+    w2, d2 = _cubic_near(1 - t)
+    w3, d3 = _cubic_far(2 - t)
+    w = torch.stack((w0, w1, w2, w3), -2)
+    d = torch.stack((d0, d1, -d2, -d3), -2) if derivs else None
+    return w, d
 
 
-def _tap_grid(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str):
-    """Yield (flat index, valid mask, weight, dweight/dx, dweight/dy) per 2D tap."""
-    H, W = texture.shape[-2:]
-    x = uv[..., 0] * W - 0.5
-    y = uv[..., 1] * H - 0.5
-    tx = axis_taps(x, W, kind, wrap_u)
-    ty = axis_taps(y, H, kind, wrap_v)
-    for iy, vy, wy, dy in ty:
-        row = iy * W
-        for ix, vx, wx, dx in tx:
-            valid = vx if vy is None else (vy if vx is None else vx & vy)
-            if dx is None:
-                yield row + ix, valid, wx * wy, None, None
-            else:
-                yield row + ix, valid, wx * wy, dx * wy, wx * dy
+class _Taps:
+    """Texel indices and separable weights of every tap of a chunk of points.
+
+    Shapes, for Bt textures, M points and K taps per axis:
+    ``idx`` [Bt, K*K*M] flat texel indices (y tap major, then x tap, then
+    point), ``valid`` [Bt, K, K, M] or None, ``wx``/``wy`` [Bt, K, M], and with
+    ``derivs`` ``dwx``/``dwy`` [Bt, K, M] = d(weight)/d(texel coordinate).
+    """
+
+    def __init__(self, texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, derivs: bool = False):
+        H, W = texture.shape[-2:]
+        # [Bt, 2, M] keeps the points contiguous, the layout of the gathers.
+        xy = (uv * uv.new_tensor([W, H]) - 0.5).transpose(1, 2).contiguous()
+        base = torch.round(xy) if kind == "nearest" else torch.floor(xy)
+        w, d = _axis_weights(xy - base, kind, derivs)
+        offs = torch.tensor(_OFFSETS[kind], device=uv.device).view(-1, 1)
+        taps = floor_index(base).unsqueeze(2) + offs  # [Bt, 2, K, M]
+        ix, vx = wrap_index(taps[:, 0], W, wrap_u)
+        iy, vy = wrap_index(taps[:, 1], H, wrap_v)
+        K = offs.shape[0]
+        self.K = K
+        self.idx = (iy.unsqueeze(2) * W + ix.unsqueeze(1)).reshape(iy.shape[0], -1)
+        if vx is None and vy is None:
+            self.valid = None
+        else:
+            vx = torch.ones_like(ix, dtype=torch.bool) if vx is None else vx
+            vy = torch.ones_like(iy, dtype=torch.bool) if vy is None else vy
+            self.valid = vy.unsqueeze(2) & vx.unsqueeze(1)
+        self.wx, self.wy = w[:, 0], w[:, 1]
+        self.dwx, self.dwy = (d[:, 0], d[:, 1]) if d is not None else (None, None)
+
+    def read(self, flat: Tensor, border: float) -> Tensor:
+        """Gathered texels [Bt, C, K, K, M]; border taps read the constant."""
+        Bt, C = flat.shape[:2]
+        vals = torch.gather(flat, 2, self.idx.unsqueeze(1).expand(-1, C, -1)).view(Bt, C, self.K, self.K, -1)
+        if self.valid is not None:
+            vals = torch.where(self.valid.unsqueeze(1), vals, vals.new_tensor(border))
+        return vals
 
 
-def _gather(flat: Tensor, idx: Tensor) -> Tensor:
-    """flat [Bt, C, HW], idx [Bt, M] -> [Bt, C, M]."""
-    return torch.gather(flat, 2, idx.unsqueeze(1).expand(-1, flat.shape[1], -1))
+def _chunks(M: int, per_point: int):
+    step = max(1, _CHUNK_ELEMENTS // max(per_point, 1))
+    return [(s, min(s + step, M)) for s in range(0, M, step)]
 
 
-def _read(flat: Tensor, idx: Tensor, valid: Tensor | None, border: float) -> Tensor:
-    vals = _gather(flat, idx)
-    if valid is not None:
-        vals = torch.where(valid.unsqueeze(1), vals, vals.new_tensor(border))
-    return vals
+def _contract(vals: Tensor, wx: Tensor, wy: Tensor) -> Tensor:
+    """sum_{a,b} wy[a] wx[b] vals[..., a, b, m]: [Bt,C,K,K,M] -> [Bt,C,M]."""
+    rows = (vals * wx.unsqueeze(1).unsqueeze(2)).sum(3)
+    return (rows * wy.unsqueeze(1)).sum(2)
 
 
 def separable_forward(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float) -> Tensor:
     """Filtered values, flat layout (see module docstring)."""
     Bt, C, H, W = texture.shape
     flat = texture.reshape(Bt, C, H * W)
-    out = None
-    for idx, valid, w, _, _ in _tap_grid(texture, uv, kind, wrap_u, wrap_v):
-        term = _read(flat, idx, valid, border) * w.unsqueeze(1)
-        out = term if out is None else out + term
-    return out
+    M, K = uv.shape[1], len(_OFFSETS[kind])
+    parts = []
+    for a, b in _chunks(M, C * K * K):
+        taps = _Taps(texture, uv[:, a:b], kind, wrap_u, wrap_v)
+        parts.append(_contract(taps.read(flat, border), taps.wx, taps.wy))
+    return parts[0] if len(parts) == 1 else torch.cat(parts, -1)
 
 
 def separable_backward(texture: Tensor, uv: Tensor, grad_out: Tensor, kind: str, wrap_u: str, wrap_v: str,
@@ -124,24 +135,39 @@ def separable_backward(texture: Tensor, uv: Tensor, grad_out: Tensor, kind: str,
     """Gradients w.r.t. texture and uv, in differentiable ops (double backward)."""
     Bt, C, H, W = texture.shape
     flat = texture.reshape(Bt, C, H * W)
-    # A pixel whose uv is NaN / inf has NaN weights; it must not spread NaN
-    # into the texels it happens to index, so it gives the texture nothing.
-    finite = torch.isfinite(uv).all(-1) if need_tex else None
-    grad_flat = torch.zeros_like(flat) if need_tex else None
-    gx = gy = None
+    grad_out = grad_out.contiguous()
     need_uv = need_uv and kind != "nearest"
-    for idx, valid, w, dwx, dwy in _tap_grid(texture, uv, kind, wrap_u, wrap_v):
+    M, K = uv.shape[1], len(_OFFSETS[kind])
+    grad_flat = torch.zeros_like(flat) if need_tex else None
+    grad_uv = []
+    for a, b in _chunks(M, C * K * K):
+        taps = _Taps(texture, uv[:, a:b], kind, wrap_u, wrap_v, derivs=need_uv)
+        g = grad_out[:, :, a:b]
         if need_tex:
-            wt = torch.where(finite if valid is None else finite & valid, w, 0.0)
-            src = grad_out * wt.unsqueeze(1)
-            grad_flat = grad_flat.scatter_add(2, idx.unsqueeze(1).expand(-1, C, -1), src)
+            w = taps.wy.unsqueeze(2) * taps.wx.unsqueeze(1)  # [Bt, K, K, m]
+            # A point whose uv is NaN / inf has NaN weights; it must not spread
+            # NaN into the texels it happens to index, so it gives them nothing.
+            keep = torch.isfinite(uv[:, a:b]).all(-1).view(Bt, 1, 1, -1)
+            if taps.valid is not None:
+                keep = keep & taps.valid
+            w = torch.where(keep, w, 0.0)
+            src = (g.view(Bt, C, 1, 1, -1) * w.unsqueeze(1)).reshape(Bt, C, -1)
+            grad_flat = grad_flat.scatter_add(2, taps.idx.unsqueeze(1).expand(-1, C, -1), src)
         if need_uv:
-            gv = (grad_out * _read(flat, idx, valid, border)).sum(1)
-            gx = gv * dwx if gx is None else gx + gv * dwx
-            gy = gv * dwy if gy is None else gy + gv * dwy
+            gv = (g.view(Bt, C, 1, 1, -1) * taps.read(flat, border)).sum(1)  # [Bt, K, K, m]
+            gx = _contract(gv.unsqueeze(1), taps.dwx, taps.wy)[:, 0] * W
+            gy = _contract(gv.unsqueeze(1), taps.wx, taps.dwy)[:, 0] * H
+            grad_uv.append(torch.stack((gx, gy), -1))
     grad_tex = grad_flat.view(Bt, C, H, W) if need_tex else None
-    grad_uv = torch.stack((gx * W, gy * H), -1) if need_uv else None
-    return grad_tex, grad_uv
+    if not need_uv:
+        return grad_tex, None
+    return grad_tex, grad_uv[0] if len(grad_uv) == 1 else torch.cat(grad_uv, 1)
+
+
+# "fast": forward and first-order backward on grid_sample (fast.py);
+# "reference": the gather code above for both. Double backward always uses
+# the reference backward. Tests run both against grid_sample.
+IMPL = "fast"
 
 
 class SeparableSample(torch.autograd.Function):
@@ -151,15 +177,33 @@ class SeparableSample(torch.autograd.Function):
     def forward(ctx, texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float) -> Tensor:
         ctx.save_for_backward(texture, uv)
         ctx.args = (kind, wrap_u, wrap_v, border)
-        return separable_forward(texture, uv, kind, wrap_u, wrap_v, border)
+        ctx.graph = None
+        if IMPL == "reference":
+            return separable_forward(texture, uv, kind, wrap_u, wrap_v, border)
+        # Keep the fast path's own small graph (it saves the padded texture
+        # and the grid) for a first-order backward in grid_sample's kernel.
+        with torch.enable_grad():
+            t = texture.detach().requires_grad_(ctx.needs_input_grad[0])
+            u = uv.detach().requires_grad_(ctx.needs_input_grad[1])
+            out = fast_forward(t, u, kind, wrap_u, wrap_v, border)
+        if out.requires_grad:
+            ctx.graph = (t, u, out)
+        return out.detach()
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):
         texture, uv = ctx.saved_tensors
         kind, wrap_u, wrap_v, border = ctx.args
-        grad_tex, grad_uv = separable_backward(
-            texture, uv, grad_out, kind, wrap_u, wrap_v, border,
-            ctx.needs_input_grad[0], ctx.needs_input_grad[1])
+        if ctx.graph is not None and not torch.is_grad_enabled():
+            t, u, out = ctx.graph
+            wanted = [x for x in (t, u) if x.requires_grad]
+            grads = iter(torch.autograd.grad(out, wanted, grad_out, retain_graph=True))
+            grad_tex = next(grads) if t.requires_grad else None
+            grad_uv = next(grads) if u.requires_grad else None
+        else:  # double backward (create_graph=True) or the reference path
+            grad_tex, grad_uv = separable_backward(
+                texture, uv, grad_out, kind, wrap_u, wrap_v, border,
+                ctx.needs_input_grad[0], ctx.needs_input_grad[1])
         return grad_tex, grad_uv, None, None, None, None
 
 
@@ -169,4 +213,7 @@ def separable_sample(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v
     No input checks: callers (``difftex.sample`` and the mip filters) have
     validated shapes, dtypes and modes already.
     """
+    if IMPL == "fast" and not (torch.is_grad_enabled() and (texture.requires_grad or uv.requires_grad)):
+        with torch.no_grad():
+            return fast_forward(texture, uv, kind, wrap_u, wrap_v, float(border))
     return SeparableSample.apply(texture, uv, kind, wrap_u, wrap_v, float(border))

@@ -1,0 +1,98 @@
+"""Fast forward / first-order backward for the separable filters, on grid_sample.
+
+``torch.nn.functional.grid_sample`` is one fused kernel on CPU and CUDA;
+difftex's own gather-based code (``basic.py``) needs a dozen tensor ops and
+runs 3-6x slower on a 2-core CPU. grid_sample lacks the repeat and mirror
+wraps, per-axis modes, a border constant and double backward, so this path
+reduces every wrap mode to what it has:
+
+* along each axis, the texture is padded by the kernel's reach ``p`` with
+  what the wrap mode reads there (the opposite edge for repeat, the mirrored
+  edge for mirror, the constant for border; nothing for clamp), and
+* the coordinate is folded into one period (``frac`` for repeat, a
+  triangle wave of period 2 for mirror), so every tap lands in the padded
+  texture, and grid_sample's "border" padding does the clamping.
+
+The values are those of ``basic.separable_forward`` (the tested reference)
+to rounding. ``SeparableSample`` in ``basic.py`` runs this path inside its
+forward and backward; double backward falls back to the reference backward.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+_GS_MODE = {"nearest": "nearest", "linear": "bilinear", "cubic": "bicubic"}
+# Texels a tap may reach beyond [0, n) after folding: bicubic reads 2.
+_REACH = {"nearest": 1, "linear": 1, "cubic": 2}
+_ROW = 256
+
+
+def _pad_axis(tex: Tensor, dim: int, p: int, mode: str, border: float) -> Tensor:
+    """Pad ``p`` texels on both ends of ``dim`` with what ``mode`` reads there."""
+    n = tex.shape[dim]
+    if mode == "clamp" or p == 0:
+        return tex
+    if mode == "border":
+        shape = list(tex.shape)
+        shape[dim] = p
+        pad = tex.new_full(shape, border)
+        return torch.cat((pad, tex, pad), dim)
+    # Indices -p..-1 and n..n+p-1, mapped the way wrap.wrap_index maps them.
+    before = torch.arange(-p, 0, device=tex.device)
+    after = torch.arange(n, n + p, device=tex.device)
+    if mode == "repeat":
+        before, after = before % n, after % n
+    else:  # mirror: period 2n, reflected about the texture's edges
+        before, after = before % (2 * n), after % (2 * n)
+        before = torch.where(before >= n, 2 * n - 1 - before, before)
+        after = torch.where(after >= n, 2 * n - 1 - after, after)
+    idx = torch.cat((before, torch.arange(n, device=tex.device), after))
+    return tex.index_select(dim, idx)
+
+
+def _fold(u: Tensor, mode: str) -> Tensor:
+    """Fold a uv coordinate into the period that the padded texture holds."""
+    if mode == "repeat":
+        return u - torch.floor(u)
+    if mode == "mirror":
+        # Triangle wave: 0 -> 0, 1 -> 1, 2 -> 0; slope +-1 like the mirror.
+        h = u * 0.5
+        return 1 - torch.abs(2 * (h - torch.floor(h)) - 1)
+    return u
+
+
+def fast_forward(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float) -> Tensor:
+    """texture [Bt,C,H,W], uv [Bt,M,2] -> [Bt,C,M], differentiable once by autograd."""
+    Bt, C, H, W = texture.shape
+    reach = _REACH[kind]
+    pu = 0 if wrap_u == "clamp" else reach
+    pv = 0 if wrap_v == "clamp" else reach
+    tex = _pad_axis(_pad_axis(texture, 3, pu, wrap_u, border), 2, pv, wrap_v, border)
+    # A NaN / inf uv would index garbage inside the kernel: sample a safe
+    # point instead and put the NaN back afterwards, so the pixel is NaN and
+    # passes no gradient to the texture. (On CPU the check is free to skip.)
+    bad = ~torch.isfinite(uv).all(-1)
+    if uv.is_cuda or bool(bad.any()):
+        uv = torch.where(bad.unsqueeze(-1), 0.0, uv)
+    else:
+        bad = None
+    if wrap_u == wrap_v:
+        folded = _fold(uv, wrap_u)
+    else:
+        folded = torch.stack((_fold(uv[..., 0], wrap_u), _fold(uv[..., 1], wrap_v)), -1)
+    # uv of the padded texture, as grid_sample's [-1, 1] coordinates.
+    scale = uv.new_tensor([2 * W / (W + 2 * pu), 2 * H / (H + 2 * pv)])
+    shift = uv.new_tensor([2 * pu / (W + 2 * pu) - 1, 2 * pv / (H + 2 * pv) - 1])
+    grid = torch.addcmul(shift, folded, scale)
+    # grid_sample's CPU kernel splits work over output rows and vectorises
+    # along a row: lay the M points out as rows of _ROW points.
+    M = grid.shape[1]
+    rows = -(-M // _ROW)
+    if rows * _ROW != M:
+        grid = F.pad(grid, (0, 0, 0, rows * _ROW - M))
+    out = F.grid_sample(tex, grid.view(Bt, rows, _ROW, 2), mode=_GS_MODE[kind], padding_mode="border",
+                        align_corners=False)
+    out = out.reshape(Bt, C, rows * _ROW)[:, :, :M]
+    return out if bad is None else torch.where(bad.unsqueeze(1), float("nan"), out)
