@@ -15,8 +15,8 @@ rows, each row into the run of texels inside it, and the (point, texel)
 pairs are flattened with ``repeat_interleave`` — work is proportional to
 the texels inside the ellipses, at most about ``pi (2 max_aniso + 1) 3``
 per point and level. Pairs are processed in chunks of bounded size; with
-gradients, each chunk is checkpointed (recomputed in the backward pass) so
-memory stays bounded too. Texels are read through ``difftex.wrap.wrap_index``.
+gradients and more than one chunk, each chunk is checkpointed (recomputed in
+the backward pass) so memory stays bounded too. Texels are read through ``difftex.wrap.wrap_index``.
 
 Where the level is clamped at the coarsest level and the ellipse is still
 larger than a couple of texels there, it is shrunk (shape kept) to a minor
@@ -137,7 +137,10 @@ def _ewa_level(lev: Tensor, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Ten
         n_chunks = int(math.ceil(float(ends[-1]) / _CHUNK)) if M else 0
         cuts = torch.searchsorted(ends, torch.arange(1, max(n_chunks, 1), device=ends.device,
                                                      dtype=ends.dtype) * _CHUNK).tolist()
-    grad = torch.is_grad_enabled() and (flat.requires_grad or frac.requires_grad or sxx.requires_grad)
+    # Checkpointing trades a second forward pass for memory: only worth it
+    # when the pairs do not fit in one chunk.
+    grad = (n_chunks > 1 and torch.is_grad_enabled()
+            and (flat.requires_grad or frac.requires_grad or sxx.requires_grad))
     outs = []
     lo = 0
     for hi in cuts + [M]:
