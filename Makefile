@@ -16,7 +16,7 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 demo: $(VENV)/.installed
-	$(PY) experiments/demo_filters.py --out results/demo
+	$(PY) experiments/fit_texture.py --out results/fit_texture
 
 test: $(VENV)/.installed
 	$(PY) -m pytest tests
