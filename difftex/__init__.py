@@ -15,3 +15,4 @@ from .interpolate import interpolate
 from . import camera
 from .mipmap import Mipmap, mipmap
 from .lod import lod
+from .textured_mesh import TexturedMesh
