@@ -27,6 +27,8 @@ class TexturedMesh(nn.Module):
         wrap: wrap mode(s) for the texture lookups.
         max_aniso: longest footprint axis over shortest the anisotropic and
             EWA filters resolve.
+        lod_bias: added to the mip level (a plain attribute: a fit may
+            schedule it, e.g. coarse to fine).
         learn_texture: register the texture as an ``nn.Parameter``.
         learn_uv: register the uv [T, 2] as an ``nn.Parameter`` too.
         background: value of pixels that no triangle covers.
@@ -36,8 +38,8 @@ class TexturedMesh(nn.Module):
     """
 
     def __init__(self, mesh: Mesh, texture: Tensor, *, filter: str = "trilinear", wrap: Wrap = "clamp",
-                 max_aniso: float = 16, learn_texture: bool = True, learn_uv: bool = False,
-                 background: float = 0.0) -> None:
+                 max_aniso: float = 16, lod_bias: float = 0.0, learn_texture: bool = True,
+                 learn_uv: bool = False, background: float = 0.0) -> None:
         super().__init__()
         if not isinstance(mesh, Mesh):
             raise TypeError(f"mesh: expected a difftex.Mesh, got {type(mesh).__name__}")
@@ -56,6 +58,7 @@ class TexturedMesh(nn.Module):
         self.filter = filter
         self.wrap = wrap
         self.max_aniso = max_aniso
+        self.lod_bias = lod_bias
         self.background = background
 
     def _register(self, name: str, value: Tensor, learn: bool) -> None:
@@ -79,7 +82,7 @@ class TexturedMesh(nn.Module):
         return rasterize(pos, self.faces, resolution)
 
     def forward(self, mvp: Tensor | None = None, resolution: Sequence[int] | None = None, *,
-                frags: Fragments | None = None) -> tuple[Tensor, Tensor]:
+                frags: Fragments | None = None, uv: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Render the textured mesh.
 
         Args:
@@ -88,6 +91,8 @@ class TexturedMesh(nn.Module):
             resolution: (H, W) of the images.
             frags: precomputed fragments (from :meth:`rasterize`) instead
                 of ``mvp`` and ``resolution``.
+            uv: [T, 2] uv to use instead of the module's own, e.g. the
+                output of a user's parametrization (a texture matrix).
 
         Returns:
             ``(images [B, C, H, W], mask [B, 1, H, W] float coverage)``;
@@ -97,9 +102,13 @@ class TexturedMesh(nn.Module):
             if mvp is None or resolution is None:
                 raise ValueError("forward: expected mvp and resolution, or precomputed frags")
             frags = self.rasterize(mvp, resolution)
-        uv, uv_dx, uv_dy = interpolate(self.uv, self.faces, frags, derivatives=True, attr_faces=self.uv_faces)
+        if uv is None:
+            uv = self.uv
+        elif uv.shape != self.uv.shape:
+            raise ValueError(f"uv: expected shape {tuple(self.uv.shape)} like the mesh's uv, got {tuple(uv.shape)}")
+        uv, uv_dx, uv_dy = interpolate(uv, self.faces, frags, derivatives=True, attr_faces=self.uv_faces)
         image = sample(self.texture, uv, filter=self.filter, wrap=self.wrap,
-                       uv_dx=uv_dx, uv_dy=uv_dy, max_aniso=self.max_aniso)
+                       uv_dx=uv_dx, uv_dy=uv_dy, max_aniso=self.max_aniso, lod_bias=self.lod_bias)
         mask = frags.mask.unsqueeze(1)
         image = torch.where(mask, image, image.new_tensor(self.background))
         return image, mask.to(image.dtype)
