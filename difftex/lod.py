@@ -74,9 +74,33 @@ def _log2_len2(len2: Tensor, fp: Footprint) -> Tensor:
     return torch.where(ok, v, far.to(v.dtype))
 
 
-def log2_length(fp: Footprint) -> Tensor:
-    """``log2 L``, ``L = max(|uv_dx|, |uv_dy|)`` in texels: the seed's trilinear length."""
-    return _log2_len2(torch.maximum((fp.p * fp.p).sum(-1), (fp.q * fp.q).sum(-1)), fp)
+def log2_length(uv_dx: Tensor, uv_dy: Tensor, height: int, width: int) -> Tensor:
+    """``log2 L``, ``L = max(|uv_dx * (W, H)|, |uv_dy * (W, H)|)`` in texels: the seed's trilinear length.
+
+    Squares are taken unscaled (the cheap path trilinear needs): a length
+    whose square overflows is beyond any pyramid (coarsest level) and one
+    whose square underflows (< 1e-19 texels in float32) is below level 0
+    unless lod_bias > 60, so the clamped level is the same as with
+    ``footprint``'s scaling. NaN gives level 0 (``-_FAR``), inf the top.
+    """
+    size2 = uv_dx.new_tensor([float(width) ** 2, float(height) ** 2])
+
+    def len2_of(a: Tensor, b: Tensor) -> Tensor:
+        return torch.maximum((a * a * size2).sum(-1), (b * b * size2).sum(-1))
+
+    with torch.no_grad():
+        raw = len2_of(uv_dx, uv_dy)  # NaN wins over inf (maximum propagates NaN)
+        ok = (raw > 0) & (raw < float("inf"))
+        far = torch.where(torch.isnan(raw) | (raw == 0), -_FAR, _FAR).to(raw.dtype)
+    if torch.is_grad_enabled() and (uv_dx.requires_grad or uv_dy.requires_grad):
+        # Double where: inputs of the masked pixels are zeroed before
+        # squaring, so their gradient is an exact 0 rather than 0 * inf.
+        m = ok.unsqueeze(-1)
+        len2 = len2_of(torch.where(m, uv_dx, 0.0), torch.where(m, uv_dy, 0.0))
+    else:
+        len2 = raw
+    v = 0.5 * torch.log2(torch.where(ok, len2, torch.ones_like(len2)))
+    return torch.where(ok, v, far)
 
 
 def _safe_sqrt(x: Tensor) -> Tensor:
@@ -203,4 +227,4 @@ def lod(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Tensor | obj
     if isinstance(lod_bias, Tensor):
         check_float("lod_bias", lod_bias, (0, 3), shape_doc="scalar or [B, Ho, Wo]")
         check_same("lod_bias", lod_bias, "uv_dx", uv_dx)
-    return level(log2_length(footprint(uv_dx, uv_dy, H, W)), lod_bias, n)
+    return level(log2_length(uv_dx, uv_dy, H, W), lod_bias, n)

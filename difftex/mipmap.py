@@ -27,6 +27,7 @@ from functools import lru_cache
 from typing import Iterator, Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from ._checks import check_float, check_same, describe
@@ -61,8 +62,10 @@ class _Box2T(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, g: Tensor) -> Tensor:
-        B, C, h, w = g.shape
-        return (g * 0.25).view(B, C, h, 1, w, 1).expand(B, C, h, 2, w, 2).reshape(B, C, 2 * h, 2 * w)
+        h, w = g.shape[-2:]
+        # Nearest 2x upsampling replicates each value over its 2 x 2 block
+        # exactly; it is the fastest such kernel on CPU (measured).
+        return F.interpolate(g * 0.25, size=(2 * h, 2 * w), mode="nearest")
 
     @staticmethod
     def backward(ctx, gg: Tensor) -> Tensor:

@@ -173,15 +173,18 @@ def _sample_mip(pyramid: Mipmap, uv: Tensor, uv_dx: Tensor, uv_dy: Tensor, bias:
     pts, dx, dy = flat(uv), flat(uv_dx), flat(uv_dy)
     if isinstance(bias, Tensor):
         bias = flat(bias) if bias.dim() == 3 else bias
-    fp = footprint(dx, dy, H, W)
-    ell = ellipse(fp) if filter in ("anisotropic", "ewa") else None
+    if filter in ("trilinear", "nearest-mip"):
+        log2_len = log2_length(dx, dy, H, W)
+    else:
+        fp = footprint(dx, dy, H, W)
+        ell = ellipse(fp)
 
     def run(lv: list[Tensor], sl: slice) -> Tensor:
         b = bias[sl] if isinstance(bias, Tensor) and bias.dim() == 1 else bias
-        f = type(fp)(*(x[sl] for x in fp))
         if filter in ("trilinear", "nearest-mip"):
-            D = level(log2_length(f), b, len(lv))
+            D = level(log2_len[sl], b, len(lv))
             return trilinear_points(lv, pts[sl], D, wrap_u, wrap_v, border, nearest_mip=filter == "nearest-mip")
+        f = type(fp)(*(x[sl] for x in fp))
         e = type(ell)(*(x[sl] for x in ell))
         fn = anisotropic_points if filter == "anisotropic" else ewa_points
         return fn(lv, pts[sl], f, e, b, max_aniso, wrap_u, wrap_v, border)

@@ -35,7 +35,7 @@ from torch.utils.checkpoint import checkpoint
 
 from ..lod import Ellipse, Footprint, level
 from ..wrap import wrap_index
-from .trilinear import level_groups
+from .trilinear import mip_blend
 
 _ALPHA = 2.0                      # pbrt-v4's Gaussian falloff
 _CHUNK = 1 << 20                  # (point, texel) pairs per chunk
@@ -177,11 +177,10 @@ def ewa_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse
     sigma, minor, log2_minor = _covariance(fp, ell, max_aniso)
     D = level(log2_minor, lod_bias, len(levels))
     scale = torch.exp2(fp.log2_scale)
-    idxs, vals = [], []
-    for k, idx, w in level_groups(D, len(levels)):
-        v = _ewa_level(levels[k], uv_safe[idx], sigma[idx], minor[idx], scale[idx], H, W, k == len(levels) - 1,
-                       wrap_u, wrap_v, border)
-        idxs.append(idx)
-        vals.append(v if w is None else v * w)
-    out = uv.new_zeros((levels[0].shape[1], M)).index_add(1, torch.cat(idxs), torch.cat(vals, 1))
+    n = len(levels)
+
+    def read(k: int, xs: list[Tensor]) -> Tensor:
+        return _ewa_level(levels[k], *xs, H, W, k == n - 1, wrap_u, wrap_v, border)
+
+    out = mip_blend(D, n, [uv_safe, sigma, minor, scale], read)
     return torch.where(ok, out, torch.full_like(out, float("nan")))

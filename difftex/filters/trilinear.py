@@ -1,19 +1,20 @@
 """Trilinear (and nearest-mip) filtering: the bilinear tap of two adjacent mip levels, blended.
 
 This is the *trilinear tap* that the anisotropic filter calls once per
-probe and whose level grouping the EWA filter shares. Work is proportional
-to the pixels a level serves: points are grouped by level, each level is
-read (with ``separable_sample``, the one bilinear of the package) only at
-the points that use it, and the weighted values are summed back with one
-``index_add``. A point whose level is an exact integer, or clamped to the
-ends of the pyramid, costs one bilinear tap, not two.
+probe, and ``mip_blend``, its level grouping and blend, is shared with the
+EWA filter. Work is proportional to the points a level serves: points are
+sorted by level once, each level is read (with ``separable_sample``, the one
+bilinear of the package) only at the points that use it, and the results
+are put back in order with one ``index_copy``. A point whose level is an
+exact integer, or clamped to the ends of the pyramid, costs one bilinear
+tap, not two.
 
 Flat layout: one texture's levels ``[1, C, H_k, W_k]``, points ``[M, ...]``,
 result ``[C, M]``; ``difftex.sample`` does batching and checks.
 """
 from __future__ import annotations
 
-from typing import Iterator, Sequence
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -21,51 +22,80 @@ from torch import Tensor
 from .basic import separable_sample
 
 
-def level_groups(D: Tensor, levels: int, *, nearest: bool = False) -> Iterator[tuple[int, Tensor, Tensor | None]]:
-    """Split points by the mip levels they read, with their blend weights.
+def mip_blend(D: Tensor, levels: int, inputs: Sequence[Tensor], read: Callable[[int, list[Tensor]], Tensor], *,
+              nearest: bool = False) -> Tensor:
+    """Blend per-level results at ``floor(D)`` and ``floor(D) + 1``, each level read once for its points.
 
     Args:
         D: [M] level per point, already clamped to ``[0, levels - 1]``
             (``difftex.lod.level``); may carry a gradient.
         levels: number of levels.
-        nearest: read only the nearest level (``round(D)``), weight 1.
+        inputs: per-point tensors ``[M, ...]`` that ``read`` needs (uv, ...).
+        read: ``read(k, [x[sel] for x in inputs])`` -> [C, m], the level-k
+            value at a selection of points (a contiguous slice of them).
+        nearest: read only the nearest level ``round(D)``, weight 1.
 
-    Yields:
-        ``(k, index, weight)``: level k, the int64 indices of the points that
-        read it, and their weights (``1 - frac(D)`` from below, ``frac(D)``
-        from above; ``None`` means all ones). Weights sum to 1 per point and
-        carry d/dD.
+    Returns:
+        [C, M]: ``(1 - frac(D)) read(floor D) + frac(D) read(floor D + 1)``,
+        differentiable in D through the weights.
+
+    Points are sorted once by (level, needs the upper level) so that each
+    level's points are one contiguous slice: a level is read at exactly the
+    points below and above it, no masks over all points per level. The upper
+    level is skipped where its weight is 0 (exact integer level, clamped at
+    either end) unless D needs a gradient inside the pyramid (d/dD = upper -
+    lower).
     """
+    M = D.shape[0]
     Dd = D.detach()
     if nearest:
-        k = torch.floor(Dd + 0.5).clamp_(0, levels - 1).long()
-        for lev in torch.bincount(k, minlength=levels).nonzero().flatten().tolist():
-            yield lev, (k == lev).nonzero().flatten(), None
-        return
-    k0 = torch.floor(Dd).clamp_(0, levels - 1)
-    frac = D - k0
-    # The upper level is skipped where its weight is 0 (exact integer level,
-    # clamped at either end), except that a D that needs a gradient inside
-    # the pyramid still reads it: d/dD = upper - lower.
-    upper = (k0 < levels - 1) & ((Dd > k0) | (D.requires_grad & (Dd > 0)))
-    k0 = k0.long()
-    k1 = torch.where(upper, k0 + 1, k0)
-    # One bincount finds the levels in use, so unused levels cost nothing.
-    used = torch.bincount(torch.cat((k0, k1[upper])), minlength=levels).nonzero().flatten().tolist()
-    for lev in used:
-        lo = k0 == lev
-        hi = upper & (k1 == lev)
-        if not bool(hi.any()):
-            idx = lo.nonzero().flatten()
-            # frac is 0 wherever there is no upper partner (D == k0), so the
-            # weight is 1 unless some of these points blend upwards or D
-            # needs its gradient.
-            blend = D.requires_grad or bool((upper & lo).any())
-            yield lev, idx, (1 - frac[idx]) if blend else None
+        k0 = torch.floor(Dd + 0.5).clamp_(0, levels - 1)
+        upper = torch.zeros_like(k0, dtype=torch.bool)
+    else:
+        k0 = torch.floor(Dd).clamp_(0, levels - 1)
+        upper = (k0 < levels - 1) & ((Dd > k0) | (D.requires_grad & (Dd > 0)))
+    key = k0.long() * 2 + upper.long()
+    counts = torch.bincount(key, minlength=2 * levels).tolist()
+    bounds = [0]
+    for c in counts:
+        bounds.append(bounds[-1] + c)
+    used = [i for i, c in enumerate(counts) if c]
+    if len(used) == 1:
+        perm = None
+        xs, Ds = list(inputs), D
+    else:
+        # Small keys sort several times faster as uint8 (levels <= 64).
+        perm = torch.argsort(key.to(torch.uint8) if levels <= 64 else key)
+        xs = [x.index_select(0, perm) for x in inputs]
+        Ds = D.index_select(0, perm)
+    lower, upper_parts = [], []
+    for k in range(levels):
+        # Keys 2k-1 (level k-1 blending up), 2k, 2k+1 (level k, below):
+        # consecutive, hence one slice of the sorted points.
+        lo, mid, hi = bounds[max(2 * k - 1, 0)], bounds[2 * k], bounds[2 * k + 2]
+        if hi == lo:
             continue
-        idx = (lo | hi).nonzero().flatten()
-        f = frac[idx]
-        yield lev, idx, torch.where(lo[idx], 1 - f, f)
+        vals = read(k, [x[lo:hi] for x in xs])
+        if mid > lo:
+            upper_parts.append((2 * k - 1, vals[:, :mid - lo] * (Ds[lo:mid] - (k - 1))))
+        if hi > mid:
+            v = vals[:, mid - lo:]
+            lower.append(v if nearest else v * (1 - (Ds[mid:hi] - k)))
+    out = torch.cat(lower, 1) if len(lower) > 1 else lower[0]
+    if upper_parts:
+        # Upper terms belong to the odd-key slices; zeros pad the even ones.
+        pieces, done = [], 0
+        for key_odd, part in upper_parts:
+            if bounds[key_odd] > done:
+                pieces.append(out.new_zeros((out.shape[0], bounds[key_odd] - done)))
+            pieces.append(part)
+            done = bounds[key_odd + 1]
+        if done < M:
+            pieces.append(out.new_zeros((out.shape[0], M - done)))
+        out = out + torch.cat(pieces, 1)
+    if perm is None:
+        return out
+    return out.new_zeros(out.shape).index_copy(1, perm, out)
 
 
 def trilinear_points(levels: Sequence[Tensor], uv: Tensor, D: Tensor, wrap_u: str, wrap_v: str,
@@ -82,15 +112,7 @@ def trilinear_points(levels: Sequence[Tensor], uv: Tensor, D: Tensor, wrap_u: st
     Returns:
         [C, M]. Differentiable in every level, uv and D (D: trilinear only).
     """
-    M = uv.shape[0]
-    C = levels[0].shape[1]
-    idxs, vals = [], []
-    for k, idx, w in level_groups(D, len(levels), nearest=nearest_mip):
-        pts = uv if idx.numel() == M else uv.index_select(0, idx)
-        v = separable_sample(levels[k], pts.unsqueeze(0), "linear", wrap_u, wrap_v, border)[0]
-        idxs.append(idx)
-        vals.append(v if w is None else v * w)
-    if len(vals) == 1 and idxs[0].numel() == M:
-        return vals[0]
-    out = uv.new_zeros((C, M))
-    return out.index_add(1, torch.cat(idxs), torch.cat(vals, 1))
+    def read(k: int, xs: list[Tensor]) -> Tensor:
+        return separable_sample(levels[k], xs[0].unsqueeze(0), "linear", wrap_u, wrap_v, border)[0]
+
+    return mip_blend(D, len(levels), [uv], read, nearest=nearest_mip)
