@@ -1,0 +1,218 @@
+"""Speed and peak memory of difftex.rasterize / interpolate.
+
+Scenes: the spot cow (5,856 triangles) at 256, 512 and 1024 pixels square;
+icospheres of 1,280 to 1,310,720 triangles at 512x512; the issue's target
+case, a ~100k-triangle sphere at 1024x1024. For each it prints the median ms
+of
+
+- ``raster``: ``rasterize(pos, faces, (H, W))`` alone,
+- ``fwd``: rasterize + ``interpolate(uv, ..., derivatives=True)`` (what a
+  textured render needs before sampling),
+- ``fwd+bwd``: that plus ``backward()`` of a loss on uv, uv_dx, uv_dy to
+  the clip-space positions and the uv,
+
+and the peak memory of one fwd+bwd: on CPU the growth of the peak resident
+set size during the first fwd+bwd of a fresh subprocess (the kernel's
+high-water mark is reset just before the call, so loading and other scenes
+do not count), ``torch.cuda.max_memory_allocated`` on CUDA.
+
+    python experiments/bench_raster.py [--device cuda] [--reps 5] [--out docs/bench_raster.md]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SCENES = [
+    ("spot", 5856, 256),
+    ("spot", 5856, 512),
+    ("spot", 5856, 1024),
+    ("icosphere", 3, 512),
+    ("icosphere", 4, 512),
+    ("icosphere", 5, 512),
+    ("icosphere", 6, 512),
+    ("icosphere", 7, 512),
+    ("icosphere", 8, 512),
+    ("uvsphere", 160, 1024),
+    ("icosphere", 6, 1024),
+    ("icosphere", 7, 1024),
+]
+
+
+def _mesh(kind: str, param: int):
+    import torch
+    import trimesh
+
+    if kind == "spot":
+        m = trimesh.load(str(ROOT / "data" / "spot" / "spot_triangulated.obj"), process=False, force="mesh")
+        uv = torch.tensor(m.visual.uv, dtype=torch.float32)
+    elif kind == "icosphere":
+        m = trimesh.creation.icosphere(subdivisions=param)
+        uv = None
+    else:  # uv sphere with 2 * param * param triangles (about)
+        m = trimesh.creation.uv_sphere(count=[param, param])
+        uv = None
+    V = torch.tensor(m.vertices, dtype=torch.float32)
+    F = torch.tensor(m.faces, dtype=torch.int64)
+    if uv is None:  # spherical uv: any smooth attribute would do
+        n = V / V.norm(dim=-1, keepdim=True)
+        uv = torch.stack((torch.atan2(n[:, 0], n[:, 2]) / (2 * math.pi) + 0.5, torch.acos(n[:, 1].clamp(-1, 1)) / math.pi), -1)
+    return V, F, uv
+
+
+def _rss_kb(field: str) -> int:
+    for line in open("/proc/self/status"):
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    return -1
+
+
+def run_one(kind: str, param: int, res: int, device: str, reps: int) -> dict:
+    import torch
+
+    import difftex
+    from difftex import camera
+
+    V, F, uv = _mesh(kind, param)
+    center = (V.min(0).values + V.max(0).values) / 2
+    radius = float((V - center).norm(dim=-1).max())
+    eye = center + radius * torch.tensor([1.2, 0.8, 2.3])
+    mvp = camera.perspective(45.0, 1.0, 0.1 * radius, 10 * radius, degrees=True) @ camera.look_at(eye, center)
+    pos = camera.transform(V, mvp).to(device)
+    F, uv = F.to(device), uv.to(device)
+
+    def sync():
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+
+    def raster():
+        return difftex.rasterize(pos, F, (res, res))
+
+    def fwd():
+        fr = difftex.rasterize(pos, F, (res, res))
+        return difftex.interpolate(uv, F, fr, derivatives=True)
+
+    p = pos.clone().requires_grad_(True)
+    u = uv.clone().requires_grad_(True)
+
+    def fwdbwd():
+        fr = difftex.rasterize(p, F, (res, res))
+        val, dx, dy = difftex.interpolate(u, F, fr, derivatives=True)
+        (val.square().sum() + dx.abs().sum() + dy.abs().sum()).backward()
+        p.grad = None
+        u.grad = None
+
+    # Peak memory of the first fwd+bwd, before anything else ran: freed
+    # memory the allocator keeps would otherwise hide the peak.
+    if device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+        base = torch.cuda.memory_allocated()
+        fwdbwd()
+        sync()
+        peak_mb = (torch.cuda.max_memory_allocated() - base) / 2**20
+    else:
+        try:
+            with open("/proc/self/clear_refs", "w") as f:
+                f.write("5")  # reset VmHWM to the current RSS
+            before = _rss_kb("VmRSS")
+            fwdbwd()
+            peak_mb = (_rss_kb("VmHWM") - before) / 1024
+        except OSError:
+            peak_mb = float("nan")
+
+    fns = [raster, fwd, fwdbwd]
+    for fn in fns:
+        fn()
+    times = [[] for _ in fns]
+    for _ in range(reps):
+        for fn, ts in zip(fns, times):
+            sync()
+            t = time.perf_counter()
+            fn()
+            sync()
+            ts.append((time.perf_counter() - t) * 1e3)
+    med = [sorted(ts)[len(ts) // 2] for ts in times]
+
+    fr = raster()
+    covered = float((fr.tri_id >= 0).float().mean())
+    return {
+        "scene": kind,
+        "param": param,
+        "tris": int(F.shape[0]),
+        "res": res,
+        "raster_ms": med[0],
+        "fwd_ms": med[1],
+        "fwdbwd_ms": med[2],
+        "peak_mb": peak_mb,
+        "covered": covered,
+        "threads": torch.get_num_threads(),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--out", default=None, help="write the markdown table here")
+    ap.add_argument("--one", default=None, help=argparse.SUPPRESS)  # internal: kind,param,res
+    args = ap.parse_args()
+
+    if args.one:
+        kind, param, res = args.one.split(",")
+        print(json.dumps(run_one(kind, int(param), int(res), args.device, args.reps)))
+        return
+
+    import torch
+
+    rows = []
+    for kind, param, res in SCENES:
+        out = subprocess.run(
+            [sys.executable, __file__, "--device", args.device, "--reps", str(args.reps), "--one", f"{kind},{param},{res}"],
+            capture_output=True, text=True, env=dict(os.environ),
+        )
+        if out.returncode != 0:
+            print(out.stderr, file=sys.stderr)
+            raise SystemExit(f"{kind} {param} {res} failed")
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        rows.append(r)
+        name = "spot" if kind == "spot" else f"{kind} {param}"
+        print(f"{name:>14} {r['tris']:>9,} tris {res:>5}^2  raster {r['raster_ms']:8.1f} ms  fwd {r['fwd_ms']:8.1f} ms  "
+              f"fwd+bwd {r['fwdbwd_ms']:8.1f} ms  peak {r['peak_mb']:7.0f} MB  covered {r['covered']:.0%}", flush=True)
+
+    dev = args.device
+    if dev == "cpu":
+        import platform
+
+        dev_desc = f"CPU ({os.cpu_count()} cores, torch {torch.__version__}, {rows[0]['threads']} threads, {platform.machine()})"
+    else:
+        dev_desc = torch.cuda.get_device_name()
+    lines = [
+        f"Device: {dev_desc}; median of {args.reps} runs; float32.",
+        "",
+        "| scene | triangles | image | rasterize ms | + interpolate (uv, derivatives) ms | fwd+bwd ms | peak MB (fwd+bwd) | pixels covered |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in rows:
+        name = "spot" if r["scene"] == "spot" else (f"icosphere({r['param']})" if r["scene"] == "icosphere" else "uv sphere")
+        lines.append(
+            f"| {name} | {r['tris']:,} | {r['res']}x{r['res']} | {r['raster_ms']:.1f} | {r['fwd_ms']:.1f} | "
+            f"{r['fwdbwd_ms']:.1f} | {r['peak_mb']:.0f} | {r['covered']:.0%} |"
+        )
+    table = "\n".join(lines)
+    print()
+    print(table)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(table + "\n")
+
+
+if __name__ == "__main__":
+    main()
