@@ -38,17 +38,20 @@ except ImportError:  # pragma: no cover
     from experiments.fit_texture import psnr, random_views, render_all, select
 
 
-def uv_laplacian(uv_faces: torch.Tensor, count: int) -> torch.Tensor:
-    """Sparse [T, T] uniform graph Laplacian over the edges of the uv triangles."""
+def uv_laplacian(uv_faces: torch.Tensor, count: int):
+    """The uniform graph Laplacian over the edges of the uv triangles, as a function.
+
+    ``lap(x)[i] = x[i] - mean of x over i's neighbours``, for x [T, K].
+    """
     e = torch.cat([uv_faces[:, [0, 1]], uv_faces[:, [1, 2]], uv_faces[:, [2, 0]]])
     e = torch.unique(torch.sort(torch.cat([e, e.flip(1)]), dim=1).values, dim=0)
     i = torch.cat([e[:, 0], e[:, 1]])
     j = torch.cat([e[:, 1], e[:, 0]])
-    deg = torch.bincount(i, minlength=count).clamp_min(1).to(torch.float32)
-    vals = -1.0 / deg[i]
-    diag = torch.arange(count)
-    idx = torch.cat([torch.stack([i, j]), torch.stack([diag, diag])], 1)
-    return torch.sparse_coo_tensor(idx, torch.cat([vals, torch.ones(count)]), (count, count)).coalesce()  # noqa
+    deg = torch.bincount(i, minlength=count).clamp_min(1).unsqueeze(1)
+
+    def lap(x: torch.Tensor) -> torch.Tensor:
+        return x - torch.zeros_like(x).index_add(0, i, x[j]) / deg
+    return lap
 
 
 def blur(tex: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -113,7 +116,7 @@ def fit_uv(iters: int = 150, res: int = 128, views: int = 24, batch: int = 8, lr
         idx = torch.randperm(views, generator=gen)[:batch]
         img, _ = model(frags=select(frags, idx), uv=current_uv())
         ref = targets[idx] if model.lod_bias == 0 else _blurred_targets(target_model, frags, idx, model.lod_bias)
-        loss = torch.mean((img - ref) ** 2) + smooth * torch.mean(torch.sparse.mm(L, residual) ** 2)
+        loss = torch.mean((img - ref) ** 2) + smooth * torch.mean(L(residual) ** 2)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
