@@ -31,15 +31,25 @@ import difftex  # noqa: E402
 from difftex.scenes import checker_noise_texture, grazing_plane, psnr  # noqa: E402
 
 
-def _timed(fn, repeats: int) -> tuple[float, float]:
-    """(median, min) wall-clock ms of ``fn()`` after one warm-up call."""
+def _timed_pair(fn, base, repeats: int) -> tuple[float, float, float]:
+    """Median ms of ``fn()`` and of ``base()``, run alternately, and the median of their per-pair ratios.
+
+    Alternating keeps both under the same machine load, which on a shared
+    CPU drifts by 2-3x within a minute; the ratio is the steadier figure.
+    """
     fn()
-    ts = []
+    base()
+    ts, tb, ratios = [], [], []
     for _ in range(repeats):
         t0 = time.perf_counter()
+        base()
+        t1 = time.perf_counter()
         fn()
-        ts.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(ts), min(ts)
+        t2 = time.perf_counter()
+        tb.append((t1 - t0) * 1e3)
+        ts.append((t2 - t1) * 1e3)
+        ratios.append((t2 - t1) / (t1 - t0))
+    return statistics.median(ts), statistics.median(tb), statistics.median(ratios)
 
 
 def _grid_sample_repeat(tex: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -89,10 +99,29 @@ def main() -> None:
     rows.append(("grid_sample bilinear, 8x8 supersampled",
                  lambda: F.avg_pool2d(_grid_sample_repeat(tex, uv8), 8)))
     rows.append(("difftex bilinear", lambda: difftex.sample(tex, uv, filter="bilinear")))
-    for name, kw in (("nearest-mip", {}), ("trilinear", {}), ("anisotropic", {"max_aniso": 4}),
+    for name, kw in (("nearest-mip", {}), ("trilinear", {}), ("anisotropic", {"max_aniso": 2}),
+                     ("anisotropic", {"max_aniso": 4}),
                      ("anisotropic", {"max_aniso": 16}), ("ewa", {"max_aniso": 4}), ("ewa", {"max_aniso": 16})):
         label = f"difftex {name}" + (f", max_aniso {kw['max_aniso']}" if kw else "")
         rows.append((label, lambda name=name, kw=kw: difftex.sample(tex, uv, filter=name, uv_dx=dx, uv_dy=dy, **kw)))
+
+    mm = difftex.mipmap(tex0).levels
+    levels = [lv.clone().requires_grad_(True) for lv in mm]
+    rows.insert(6, ("difftex trilinear, prebuilt Mipmap (gradient to its levels)",
+                    lambda: difftex.sample(difftex.Mipmap(levels), uv, filter="trilinear", uv_dx=dx, uv_dy=dy)))
+
+    def clear():
+        tex.grad = uv.grad = grid.grad = None
+        for lv in levels:
+            lv.grad = None
+
+    def gs_fwd():
+        with torch.no_grad():
+            gs()
+
+    def gs_fwd_bwd():
+        clear()
+        gs().sum().backward()
 
     results = []
     for label, fn in rows:
@@ -106,29 +135,32 @@ def main() -> None:
                 fn()
 
         def fwd_bwd():
-            tex.grad = uv.grad = grid.grad = None
+            clear()
             fn().sum().backward()
 
-        f_med, f_min = _timed(fwd, reps)
-        b_med, b_min = _timed(fwd_bwd, reps)
-        results.append((label, score, f_med, b_med, f_min, b_min))
-        print(f"{label:45s} {score:6.2f} dB  fwd {f_med:8.2f} ms  fwd+bwd {b_med:8.2f} ms", flush=True)
+        f_ms, fb_ms, f_ratio = _timed_pair(fwd, gs_fwd, reps)
+        b_ms, bb_ms, b_ratio = _timed_pair(fwd_bwd, gs_fwd_bwd, reps)
+        results.append((label, score, f_ms, b_ms, f_ratio, b_ratio, fb_ms, bb_ms))
+        print(f"{label:60s} {score:6.2f} dB  fwd {f_ms:8.2f} ms ({f_ratio:5.1f}x)  fwd+bwd {b_ms:8.2f} ms "
+              f"({b_ratio:5.1f}x)   [grid_sample alongside: {fb_ms:.2f} / {bb_ms:.2f} ms]", flush=True)
 
-    base_f, base_b = results[0][2], results[0][3]
     lines = [
         f"Grazing-plane scene: {args.res}x{args.res} image, camera 1 unit above the plane, 20 deg down, "
         f"{args.tex}x{args.tex}x3 checker+noise texture, repeat. PSNR against 16x16 supersampled bilinear. "
-        f"Median of {args.repeats} runs (EWA and 8x8: {max(3, args.repeats // 3)}), "
+        f"Medians of {args.repeats} runs (EWA and 8x8: {max(3, args.repeats // 3)}), "
         f"{torch.get_num_threads()} thread(s), torch {torch.__version__}, {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} CPUs. Forward+backward: gradients to texture and uv; mip filters include building "
-        "the pyramid. Ratios: to grid_sample bilinear (no supersampling) in the same run.",
+        f"{os.cpu_count()} CPUs. Forward+backward: gradients to texture and uv (mip filters: the pyramid is "
+        "built from the texture inside the timed region, except the prebuilt-Mipmap row). Each row is timed "
+        "alternately with grid_sample bilinear (no supersampling, uv folded into [0, 1) beforehand); the "
+        "ratio is the median of the per-pair ratios, and the last columns give grid_sample's own medians "
+        "during that row, which show the machine's load drift.",
         "",
-        "| filter | PSNR (dB) | fwd (ms) | fwd+bwd (ms) | fwd ratio | fwd+bwd ratio |",
-        "| --- | ---: | ---: | ---: | ---: | ---: |",
+        "| filter | PSNR (dB) | fwd (ms) | fwd+bwd (ms) | fwd ratio | fwd+bwd ratio | grid_sample fwd / fwd+bwd (ms) |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
-    for label, score, f_med, b_med, _, _ in results:
-        lines.append(f"| {label} | {score:.2f} | {f_med:.2f} | {b_med:.2f} | {f_med / base_f:.1f}x | "
-                     f"{b_med / base_b:.1f}x |")
+    for label, score, f_ms, b_ms, f_ratio, b_ratio, fb_ms, bb_ms in results:
+        lines.append(f"| {label} | {score:.2f} | {f_ms:.2f} | {b_ms:.2f} | {f_ratio:.1f}x | {b_ratio:.1f}x | "
+                     f"{fb_ms:.2f} / {bb_ms:.2f} |")
     table = "\n".join(lines)
     print()
     print(table)

@@ -67,10 +67,10 @@ def anisotropic_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell:
     axis = ell.direction * (ell.major.unsqueeze(-1) * scale) / uv.new_tensor([float(W), float(H)])
     point = torch.repeat_interleave(torch.arange(M, device=uv.device), n)
     start = torch.cumsum(n, 0) - n
-    i = torch.arange(point.numel(), device=uv.device) - start[point]
-    nt = nf[point]
+    # index_select: several times faster than advanced indexing on CPU.
+    i = torch.arange(point.numel(), device=uv.device) - start.index_select(0, point)
+    nt = nf.index_select(0, point)
     offset = ((i.to(uv.dtype) + 0.5) / nt - 0.5).unsqueeze(-1)
-    taps = uv[point] + axis[point] * offset
-    vals = trilinear_points(levels, taps, D[point], wrap_u, wrap_v, border)
-    vals = vals / nt
-    return uv.new_zeros((vals.shape[0], M)).index_add(1, point, vals)
+    taps = torch.addcmul(uv.index_select(0, point), axis.index_select(0, point), offset)
+    vals = trilinear_points(levels, taps, D.index_select(0, point), wrap_u, wrap_v, border)
+    return uv.new_zeros((vals.shape[0], M)).index_add(1, point, vals / nt)
