@@ -103,20 +103,29 @@ def interpolate(
 
     dtype = torch.promote_types(attr.dtype, frags.bary.dtype)
     attr = attr.to(dtype)
-    # Background pixels read face 0 and are then zeroed with a where, which
-    # also gives them zero gradient.
-    corner = index[tri_id.clamp(min=0)]  # [B, H, W, 3]
+    A = attr.shape[-1]
+    V = attr.shape[1]
+    # Work on covered pixels only and scatter into zeros: background pixels
+    # get exact zeros and no gradient, and the cost follows the coverage.
+    HW = H * W
+    idx = torch.nonzero(tri_id.reshape(-1) >= 0).squeeze(1)  # flat over [B, H, W]
+    corner = index.index_select(0, tri_id.reshape(-1).index_select(0, idx))  # [N, 3]
     if Ba == 1:
-        vals = attr[0][corner]  # [B, H, W, 3, A]
-    else:
-        bidx = torch.arange(Ba, device=device).view(Ba, 1, 1, 1)
-        vals = attr[bidx, corner.expand(Bo, H, W, 3)]
-    m = mask[..., None]
+        vals = attr[0].index_select(0, corner.reshape(-1)).view(1, -1, 3, A)
+    elif B == Bo:  # one attribute set per fragment batch
+        b = torch.div(idx, HW, rounding_mode="floor")
+        rows = (b[:, None] * V + corner).reshape(-1)
+        vals = attr.reshape(-1, A).index_select(0, rows).view(1, -1, 3, A)
+    else:  # B == 1 < Ba: every attribute set on the same fragments
+        vals = attr.index_select(1, corner.reshape(-1)).view(Ba, -1, 3, A)
+    out_rows = Bo * HW if vals.shape[0] == 1 else HW
 
     def weigh(w: Tensor) -> Tensor:
-        out = (w.to(dtype)[..., :, None] * vals).sum(-2)
-        out = torch.where(m, out, torch.zeros((), dtype=dtype, device=device))
-        return out.expand(Bo, H, W, attr.shape[-1]) if out.shape[0] != Bo else out
+        wc = w.reshape(-1, 3).index_select(0, idx).to(dtype)  # [N, 3]
+        vc = (wc[None, :, :, None] * vals).sum(-2)  # [Bv, N, A]
+        out = torch.zeros((vals.shape[0], out_rows, A), dtype=dtype, device=device)
+        out.index_copy_(1, idx, vc)  # in place on fresh zeros: no extra copy
+        return out.view(Bo, H, W, A)
 
     value = weigh(frags.bary)
     if not derivatives:

@@ -157,35 +157,15 @@ def _pow2_scale(v: Tensor) -> Tensor:
     return torch.ldexp(torch.ones_like(m), -exp)
 
 
-def _cross(a: Tensor, b: Tensor) -> Tensor:
-    """Cross product with one rounding per term, no fused multiply-add.
-
-    ``_cross(b, a)`` is then bit-for-bit ``-_cross(a, b)``, which the fill
-    rule relies on: two triangles sharing an edge see exactly opposite edge
-    functions.
-    """
-    a0, a1, a2 = a.unbind(-1)
-    b0, b1, b2 = b.unbind(-1)
-    return torch.stack((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0), dim=-1)
-
-
-def _edge_normals(v: Tensor) -> tuple[Tensor, Tensor]:
-    """Homogeneous edge functions of triangles ``v`` [..., 3, 4] (clip space).
-
-    Returns ``n`` [..., 3, 3] where row i = (a_i, b_i, c_i) of
-    ``e_i(x, y) = a_i x + b_i y + c_i`` (NDC x, y), and ``det`` [...].
-    """
-    h = v[..., [0, 1, 3]]
-    h0, h1, h2 = h.unbind(-2)
-    n = torch.stack((_cross(h1, h2), _cross(h2, h0), _cross(h0, h1)), dim=-2)
-    det = (h0 * n[..., 0, :]).sum(-1)
-    return n, det
-
-
 def _pixel_centres(n: int, dtype: torch.dtype, device: torch.device, flip: bool) -> Tensor:
     """NDC coordinates of pixel centres along one axis (row 0 = NDC y +1)."""
     c = (torch.arange(n, dtype=dtype, device=device) + 0.5) * (2.0 / n) - 1.0
     return -c if flip else c
+
+
+def _rows(t: Tensor, idx: Tensor) -> Tensor:
+    """``t[idx]`` along dim 0 through index_select, 1.5-2x faster than advanced indexing on CPU."""
+    return t.index_select(0, idx.reshape(-1)).view(*idx.shape, *t.shape[1:])
 
 
 def _next_pow2_exp(n: Tensor) -> Tensor:
@@ -199,151 +179,181 @@ def _next_pow2_exp(n: Tensor) -> Tensor:
 
 
 @dataclass
-class _Setup:
-    """Per-triangle data of the visibility pass, for triangles that survive culling."""
+class _Items:
+    """Work items of the visibility pass, sorted by block size.
 
-    tri: Tensor  # [N] int64, global index b * F + f
-    coef: Tensor  # [N, 3, 3] sign-normalised edge functions (inside: e >= thr)
-    thr: Tensor  # [N, 3] 0 where the fill rule owns the edge, else the smallest positive
-    zcoef: Tensor  # [N, 3] z_ndc = zx * x + zy * y + zc
-    c0: Tensor  # [N] first bbox column
-    r0: Tensor  # [N] first bbox row
-    bw: Tensor  # [N] bbox width in pixels (>= 1)
-    bh: Tensor  # [N] bbox height in pixels (>= 1)
+    One item = one triangle (or one band of rows of a big triangle) and the
+    pixel block it tests. ``fdata`` [n, 15] per item: sign-normalised edge
+    functions e_k = a_k x + b_k y + c_k as (a_0..2, b_0..2, c_0..2) (inside:
+    e_k >= thr_k), thr_0..2 (0 where the fill rule owns the edge, else the
+    smallest positive float) and the depth plane (zx, zy, zc). ``idata`` [n, 5]: global triangle index b * F + f,
+    first column, first row, width, height of the pixel block in use.
+    """
+
+    fdata: Tensor
+    idata: Tensor
+    groups: list[tuple[int, int, int, int]]  # (start, stop, log2 Hs, log2 Ws)
 
 
-def _setup_triangles(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool) -> _Setup:
-    B = pos.shape[0]
-    F = faces.shape[0]
-    dtype, device = pos.dtype, pos.device
-    v = pos[:, faces].reshape(B * F, 3, 4)
+def _bbox_clipped(v: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """NDC bounding box of the part of triangles ``v`` [m, 3, 4] in front of the near plane.
 
-    # Early cull: every vertex beyond the same clip plane (valid for any sign
-    # of w, since the visible set -w <= x, y, z <= w is convex).
-    X, Y, Z, Wc = v.unbind(-1)
-    outside = (
-        (X > Wc).all(1) | (X < -Wc).all(1) | (Y > Wc).all(1) | (Y < -Wc).all(1)
-        | (Z > Wc).all(1) | (Z < -Wc).all(1)
-    )
-    tri = torch.nonzero(~outside).squeeze(1)
-    v = v[tri]
-    v = v * _pow2_scale(v)[:, None, None]
-
-    n, det = _edge_normals(v)
-    keep = det != 0  # zero-area (or edge-on) triangles cover nothing
-    if cull_backfaces:
-        keep &= det > 0  # front faces are counter-clockwise in NDC (OpenGL)
-
-    # Screen bounding box. Points of the triangle in front of the near plane
-    # (z >= -w) form a convex polygon: its vertices are the kept corners and
-    # the edge / plane crossings. If all of them have w > 0 (any ordinary
-    # projection), the projected polygon is their convex hull; otherwise
-    # fall back to the whole screen, which is correct, only slower.
-    d = v[..., 2] + v[..., 3]  # z + w per corner, [N, 3]
-    vi, vj = v, v.roll(-1, dims=1)
-    di, dj = d, d.roll(-1, dims=1)
-    cross = (di >= 0) != (dj >= 0)
-    denom = torch.where(cross, di - dj, torch.ones_like(di))
-    t = (di / denom).unsqueeze(-1)
-    pts = torch.cat((v, vi + t * (vj - vi)), dim=1)  # [N, 6, 4]
+    Points with z >= -w form a convex polygon whose vertices are the kept
+    corners and the edge / plane crossings. When all of them have w > 0
+    (any ordinary projection) the projected polygon is their convex hull;
+    otherwise the box is the whole screen, which is correct, only slower.
+    Returns xmin, xmax, ymin, ymax [m] and ``any`` [m] (something is left).
+    """
+    d = v[..., 2] + v[..., 3]  # z + w per corner
+    vj, dj = v.roll(-1, dims=1), d.roll(-1, dims=1)
+    cross = (d >= 0) != (dj >= 0)
+    denom = torch.where(cross, d - dj, torch.ones_like(d))
+    t = (d / denom).unsqueeze(-1)
+    pts = torch.cat((v, v + t * (vj - v)), dim=1)  # [m, 6, 4]
     use = torch.cat((d >= 0, cross), dim=1)
     pw = pts[..., 3]
-    bbox_ok = (~use | (pw > 0)).all(1)
+    ok = (~use | (pw > 0)).all(1)
     pw_safe = torch.where(use & (pw > 0), pw, torch.ones_like(pw))
     px, py = pts[..., 0] / pw_safe, pts[..., 1] / pw_safe
     inf = torch.full_like(px, float("inf"))
-    xmin = torch.where(use, px, inf).amin(1)
-    xmax = torch.where(use, px, -inf).amax(1)
-    ymin = torch.where(use, py, inf).amin(1)
-    ymax = torch.where(use, py, -inf).amax(1)
-    keep &= use.any(1)
-    one = torch.ones_like(xmin)
-    xmin = torch.where(bbox_ok, xmin, -one).clamp(-1, 1)
-    xmax = torch.where(bbox_ok, xmax, one).clamp(-1, 1)
-    ymin = torch.where(bbox_ok, ymin, -one).clamp(-1, 1)
-    ymax = torch.where(bbox_ok, ymax, one).clamp(-1, 1)
+    one = torch.ones_like(px[:, 0])
+    xmin = torch.where(ok, torch.where(use, px, inf).amin(1), -one)
+    xmax = torch.where(ok, torch.where(use, px, -inf).amax(1), one)
+    ymin = torch.where(ok, torch.where(use, py, inf).amin(1), -one)
+    ymax = torch.where(ok, torch.where(use, py, -inf).amax(1), one)
+    return xmin, xmax, ymin, ymax, use.any(1)
+
+
+def _prepare(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool) -> _Items | None:
+    """Cull triangles, find their pixel blocks and set up their edge functions."""
+    B, V = pos.shape[0], pos.shape[1]
+    F = faces.shape[0]
+    dtype, device = pos.dtype, pos.device
+    # Per-vertex power-of-two scale: a positive factor on a homogeneous
+    # vertex does not move it, so coverage and depth are unchanged, products
+    # stay exact (watertightness) and huge inputs cannot overflow.
+    pv = pos.reshape(B * V, 4)
+    _, ex = torch.frexp(pv.abs().amax(-1))
+    pv = pv * torch.ldexp(torch.ones_like(ex, dtype=dtype), -ex)[:, None]
+    X, Y, Z, Wc = pv.unbind(-1)
+
+    # Early cull with outcodes: all corners beyond the same clip plane (valid
+    # for any sign of w, since the view volume -w <= x, y, z <= w is convex).
+    u8 = torch.uint8
+    code = (
+        (X > Wc).to(u8) | ((X < -Wc).to(u8) << 1) | ((Y > Wc).to(u8) << 2)
+        | ((Y < -Wc).to(u8) << 3) | ((Z > Wc).to(u8) << 4) | ((Z < -Wc).to(u8) << 5)
+    )
+    vid = (torch.arange(B, device=device) * V).view(B, 1, 1) + faces  # [B, F, 3]
+    vid = vid.view(B * F, 3)
+    cv = _rows(code, vid)
+    tri = torch.nonzero((cv[:, 0] & cv[:, 1] & cv[:, 2]) == 0).squeeze(1)
+    if tri.numel() == 0:
+        return None
+    vid = _rows(vid, tri)
+
+    # Screen bounding boxes: corners in front of the near plane project
+    # directly; triangles reaching behind it take the clipping path.
+    front = (Z + Wc >= 0) & (Wc > 0)
+    inv_w = 1 / torch.where(front, Wc, torch.ones_like(Wc))
+    px, py = _rows(X * inv_w, vid), _rows(Y * inv_w, vid)  # [n, 3]
+    xmin, xmax = px.amin(1), px.amax(1)
+    ymin, ymax = py.amin(1), py.amax(1)
+    alive = torch.ones_like(xmin, dtype=torch.bool)
+    slow = torch.nonzero(~_rows(front, vid).all(1)).squeeze(1)
+    if slow.numel() > 0:
+        bx = _bbox_clipped(_rows(pv, _rows(vid, slow)))
+        xmin[slow], xmax[slow], ymin[slow], ymax[slow] = bx[0], bx[1], bx[2], bx[3]
+        alive[slow] = bx[4]
     # Pixel centres inside [min, max], widened by a small margin so rounding
     # of the projected corners never drops a pixel the edge test accepts.
     m = 1e-3
-    c0 = torch.ceil((xmin + 1) * (W / 2) - 0.5 - m).clamp(0, W).to(torch.int64)
-    c1 = torch.floor((xmax + 1) * (W / 2) - 0.5 + m).clamp(-1, W - 1).to(torch.int64)
-    r0 = torch.ceil((1 - ymax) * (H / 2) - 0.5 - m).clamp(0, H).to(torch.int64)
-    r1 = torch.floor((1 - ymin) * (H / 2) - 0.5 + m).clamp(-1, H - 1).to(torch.int64)
+    c0 = torch.ceil((xmin.clamp(-1, 1) + 1) * (W / 2) - 0.5 - m).clamp(0, W).to(torch.int64)
+    c1 = torch.floor((xmax.clamp(-1, 1) + 1) * (W / 2) - 0.5 + m).clamp(-1, W - 1).to(torch.int64)
+    r0 = torch.ceil((1 - ymax.clamp(-1, 1)) * (H / 2) - 0.5 - m).clamp(0, H).to(torch.int64)
+    r1 = torch.floor((1 - ymin.clamp(-1, 1)) * (H / 2) - 0.5 + m).clamp(-1, H - 1).to(torch.int64)
     bw, bh = c1 - c0 + 1, r1 - r0 + 1
-    keep &= (bw > 0) & (bh > 0)
+    sel = torch.nonzero(alive & (bw > 0) & (bh > 0)).squeeze(1)
+    tri, vid, c0, r0, bw, bh = (_rows(t, sel) for t in (tri, vid, c0, r0, bw, bh))
 
+    # Edge functions of the survivors: e_i = (h_j x h_k) . (x, y, 1) with
+    # h = (X, Y, W), written per component on [n, 3] tensors (edge i uses
+    # corners j = i + 1, k = i + 2). Each product is rounded on its own (no
+    # fused multiply-add), so a shared edge seen from its two triangles
+    # gives bit-for-bit opposite coefficients.
+    v = _rows(pv, vid)  # [n, 3, 4]
+    X, Y, Z, Wc = v.unbind(-1)
+    Xj, Yj, Wj = X.roll(-1, 1), Y.roll(-1, 1), Wc.roll(-1, 1)
+    Xk, Yk, Wk = X.roll(-2, 1), Y.roll(-2, 1), Wc.roll(-2, 1)
+    a = Yj * Wk - Wj * Yk
+    b = Wj * Xk - Xj * Wk
+    c = Xj * Yk - Yj * Xk
+    det = X[:, 0] * a[:, 0] + Y[:, 0] * b[:, 0] + Wc[:, 0] * c[:, 0]  # det[h_0 h_1 h_2]
+    keep = det > 0 if cull_backfaces else det != 0  # front faces: CCW in NDC
     sel = torch.nonzero(keep).squeeze(1)
-    tri, n, det, v = tri[sel], n[sel], det[sel], v[sel]
-    c0, r0, bw, bh = c0[sel], r0[sel], bw[sel], bh[sel]
-
+    if sel.numel() == 0:
+        return None
+    if sel.numel() < keep.numel():
+        tri, a, b, c, Z, det, c0, r0, bw, bh = (_rows(t, sel) for t in (tri, a, b, c, Z, det, c0, r0, bw, bh))
+    # z_ndc = sum_i e_i Z_i / det, affine in NDC (x, y).
+    inv_det = 1 / det
+    zcoef = torch.stack(((a * Z).sum(1) * inv_det, (b * Z).sum(1) * inv_det, (c * Z).sum(1) * inv_det), dim=1)
     # Orient every edge function so that the inside is e >= 0.
-    sgn = torch.sign(det)
-    coef = n * sgn[:, None, None]
+    sgn = torch.sign(det)[:, None]
+    a, b, c = a * sgn, b * sgn, c * sgn
     # Top-left style fill rule: a pixel centre exactly on an edge belongs to
     # the triangle whose edge gradient (a, b) points towards +x (or +y when
-    # the edge is horizontal), i.e. the sample is nudged by (d, d^2). Two
+    # the edge is horizontal), as if the sample were nudged by (d, d^2). Two
     # triangles sharing an edge have exactly opposite coefficients, so
     # exactly one of them owns such a pixel: no cracks, no double coverage.
-    a, b = coef[..., 0], coef[..., 1]
     owns = (a > 0) | ((a == 0) & (b > 0))
     tiny = torch.finfo(dtype).tiny * torch.finfo(dtype).eps  # smallest subnormal
     thr = torch.where(owns, torch.zeros_like(a), torch.full_like(a, tiny))
-    # z_ndc = sum_i e_i Z_i / det, affine in NDC (x, y).
-    zcoef = (n * v[..., 2:3]).sum(1) / det[:, None]
-    return _Setup(tri, coef, thr, zcoef, c0, r0, bw, bh)
+    fdata = torch.cat((a, b, c, thr, zcoef), dim=1)  # [n, 15]
 
-
-def _split_rows(s: _Setup) -> _Setup:
-    """Split bounding boxes bigger than _MAX_BLOCK candidates into row bands."""
-    ws = torch.ones_like(s.bw) << _next_pow2_exp(s.bw)
-    hs = torch.ones_like(s.bh) << _next_pow2_exp(s.bh)
-    big = ws * hs > _MAX_BLOCK
-    if not bool(big.any()):
-        return s
-    band = (_MAX_BLOCK // ws).clamp(min=1)
-    nb = torch.where(big, (s.bh + band - 1) // band, torch.ones_like(band))
-    rep = torch.repeat_interleave(torch.arange(len(nb), device=nb.device), nb)
-    start = torch.cumsum(nb, 0) - nb
-    k = torch.arange(len(rep), device=nb.device) - start[rep]  # band index
-    band_r = band[rep]
-    r0 = s.r0[rep] + k * torch.where(big[rep], band_r, torch.zeros_like(band_r))
-    bh = torch.where(big[rep], torch.minimum(band_r, s.bh[rep] - k * band_r), s.bh[rep])
-    return _Setup(s.tri[rep], s.coef[rep], s.thr[rep], s.zcoef[rep], s.c0[rep], r0, s.bw[rep], bh)
-
-
-def _candidate_chunks(s: _Setup) -> Iterator[tuple[_Setup, int, int]]:
-    """Group triangles by power-of-two bbox size and yield bounded chunks.
-
-    Yields (chunk, Hs, Ws): every triangle of the chunk tests an Hs x Ws
-    block of pixels starting at its bbox corner (at most 4x its bbox, or
-    8x for the few triangles of a merged sparse bin).
-    """
-    ew = _next_pow2_exp(s.bw)
-    eh = _next_pow2_exp(s.bh)
+    # Blocks: power-of-two width and height covering the bbox; bigger than
+    # _MAX_BLOCK candidates are split into bands of rows.
+    item_tri = torch.arange(len(tri), device=device)
+    ew, eh = _next_pow2_exp(bw), _next_pow2_exp(bh)
+    big = torch.nonzero(ew + eh > _MAX_BLOCK.bit_length() - 1).squeeze(1)
+    if big.numel() > 0:
+        band = (_MAX_BLOCK >> ew[big]).clamp(min=1)
+        nb = (bh[big] + band - 1) // band
+        rep = torch.repeat_interleave(torch.arange(len(big), device=device), nb)
+        k = torch.arange(len(rep), device=device) - (torch.cumsum(nb, 0) - nb)[rep]
+        band_r = band[rep]
+        bt = big[rep]
+        small = torch.ones_like(bw, dtype=torch.bool)
+        small[big] = False
+        small = torch.nonzero(small).squeeze(1)
+        item_tri = torch.cat((small, bt))
+        c0 = torch.cat((c0[small], c0[bt]))
+        bw = torch.cat((bw[small], bw[bt]))
+        r0 = torch.cat((r0[small], r0[bt] + k * band_r))
+        bh = torch.cat((bh[small], torch.minimum(band_r, bh[bt] - k * band_r)))
+        ew = torch.cat((ew[small], ew[bt]))
+        eh = torch.cat((eh[small], _next_pow2_exp(bh[len(small):])))
     key, order = torch.sort(ew * 64 + eh)
-    # One gather per field here, so that chunks below are free slices.
-    s = _Setup(*(getattr(s, f)[order] for f in _Setup.__dataclass_fields__))
-    ew, eh = ew[order], eh[order]
+    it = _rows(item_tri, order)
+    idata = _rows(torch.stack((c0, r0, bw, bh), dim=1), order)
+    idata = torch.cat((_rows(tri, it)[:, None], idata), dim=1)
+    fdata = _rows(fdata, it)
+
     uniq, counts = torch.unique_consecutive(key, return_counts=True)
     uniq_l, counts_l = uniq.tolist(), counts.tolist()
     # Merge sparse bins into the next bin (at most 2x bigger per axis): a
     # few wasted candidates cost less than one more pass of kernel launches.
-    groups: list[tuple[int, int, int, int]] = []  # (start, stop, ew, eh)
+    groups: list[tuple[int, int, int, int]] = []
     start, pending, mw, mh = 0, 0, 0, 0
-    for i, (k, c) in enumerate(zip(uniq_l, counts_l)):
+    for i, (k_, c) in enumerate(zip(uniq_l, counts_l)):
         pending += c
-        mw, mh = max(mw, k // 64), max(mh, k % 64)
+        mw, mh = max(mw, k_ // 64), max(mh, k_ % 64)
         nxt = uniq_l[i + 1] if i + 1 < len(uniq_l) else None
         if nxt is not None and pending < _MIN_BIN and nxt // 64 - mw <= 1 and 0 <= nxt % 64 - mh <= 1:
             continue
-        groups.append((start, start + pending, mw, mh))
+        groups.append((start, start + pending, mh, mw))
         start, pending, mw, mh = start + pending, 0, 0, 0
-    for g0, g1, ws_e, hs_e in groups:
-        Ws, Hs = 1 << ws_e, 1 << hs_e
-        per = max(1, _CHUNK_CANDIDATES // (Ws * Hs))
-        for c in range(g0, g1, per):
-            c1 = min(g1, c + per)
-            yield _Setup(*(getattr(s, f)[c:c1] for f in _Setup.__dataclass_fields__)), Hs, Ws
+    return _Items(fdata, idata, groups)
 
 
 def _fragments(
@@ -360,46 +370,52 @@ def _fragments(
     F = faces.shape[0]
     if F == 0:
         return
-    s = _setup_triangles(pos, faces, H, W, cull_backfaces)
-    if s.tri.numel() == 0:
+    items = _prepare(pos, faces, H, W, cull_backfaces)
+    if items is None:
         return
-    s = _split_rows(s)
-    nan = float("nan")
-    xs = torch.cat((_pixel_centres(W, dtype, device, flip=False), torch.tensor([nan], dtype=dtype, device=device)))
-    ys = torch.cat((_pixel_centres(H, dtype, device, flip=True), torch.tensor([nan], dtype=dtype, device=device)))
-    for c, Hs, Ws in _candidate_chunks(s):
-        lw, lh = Ws.bit_length() - 1, Hs.bit_length() - 1
+    nan = torch.tensor([float("nan")], dtype=dtype, device=device)
+    xs = torch.cat((_pixel_centres(W, dtype, device, flip=False), nan))
+    ys = torch.cat((_pixel_centres(H, dtype, device, flip=True), nan))
+    for g0, g1, lh, lw in items.groups:
+        Hs, Ws = 1 << lh, 1 << lw
+        per = max(1, _CHUNK_CANDIDATES >> (lh + lw))
         j = torch.arange(Ws, device=device)
         i = torch.arange(Hs, device=device)
-        # Columns / rows beyond the bbox read NaN, which fails every test.
-        col = torch.where(j < c.bw[:, None], c.c0[:, None] + j, W)  # [n, Ws]
-        row = torch.where(i < c.bh[:, None], c.r0[:, None] + i, H)  # [n, Hs]
-        x = xs[col]
-        y = ys[row]
-        covered = None
-        for k in range(3):
-            # The same operation order for every triangle, ((a x) + c) + (b y),
-            # so shared edges evaluate to exact negatives of each other.
-            axc = c.coef[:, k, 0:1] * x + c.coef[:, k, 2:3]
-            by = c.coef[:, k, 1:2] * y
-            e = axc[:, None, :] + by[:, :, None]
-            inside = e >= c.thr[:, k, None, None]
-            covered = inside if covered is None else covered.logical_and_(inside)
-        idx = torch.nonzero(covered.view(-1)).squeeze(1)
-        if idx.numel() == 0:
-            continue
-        t = idx >> (lw + lh)
-        jj = idx & (Ws - 1)
-        ii = (idx >> lw) & (Hs - 1)
-        z = c.zcoef[t, 0] * x[t, jj] + c.zcoef[t, 2] + c.zcoef[t, 1] * y[t, ii]
-        b = torch.div(c.tri, F, rounding_mode="floor")
-        base = (b * H + c.r0) * W + c.c0
-        pix = base[t] + ii * W + jj
-        tri = c.tri[t]
-        ok = (z >= -1) & (z <= 1)
-        if not bool(ok.all()):
-            pix, tri, z = pix[ok], tri[ok], z[ok]
-        yield pix, tri, z
+        for s0 in range(g0, g1, per):
+            fd = items.fdata[s0:min(g1, s0 + per)]
+            tri, c0, r0, bw, bh = items.idata[s0:min(g1, s0 + per)].unbind(1)
+            # Columns / rows beyond the bbox read NaN, which fails every test.
+            col = torch.where(j < bw[:, None], c0[:, None] + j, W)  # [n, Ws]
+            row = torch.where(i < bh[:, None], r0[:, None] + i, H)  # [n, Hs]
+            x = _rows(xs, col)
+            y = _rows(ys, row)
+            covered = None
+            for k in range(3):
+                # The same operation order for every triangle, ((a x) + c) + (b y),
+                # so shared edges evaluate to exact negatives of each other.
+                axc = fd[:, k:k + 1] * x + fd[:, 6 + k:7 + k]
+                by = fd[:, 3 + k:4 + k] * y
+                e = axc[:, None, :] + by[:, :, None]
+                inside = e >= fd[:, 9 + k, None, None]
+                covered = inside if covered is None else covered.logical_and_(inside)
+            idx = torch.nonzero(covered.view(-1)).squeeze(1)
+            if idx.numel() == 0:
+                continue
+            t = idx >> (lw + lh)
+            jj = idx & (Ws - 1)
+            ii = (idx >> lw) & (Hs - 1)
+            zc = _rows(fd[:, 12:15], t)
+            xt = torch.take(x, (t << lw) + jj)
+            yt = torch.take(y, (t << lh) + ii)
+            z = zc[:, 0] * xt + zc[:, 2] + zc[:, 1] * yt
+            b = torch.div(tri, F, rounding_mode="floor")
+            base = (b * H + r0) * W + c0
+            pix = _rows(base, t) + ii * W + jj
+            tri = _rows(tri, t)
+            ok = (z >= -1) & (z <= 1)
+            if not bool(ok.all()):
+                pix, tri, z = pix[ok], tri[ok], z[ok]
+            yield pix, tri, z
 
 
 def _visibility(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool) -> Tensor:
