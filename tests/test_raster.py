@@ -30,7 +30,13 @@ def _boundary(ids: np.ndarray) -> np.ndarray:
 # reference: trimesh ray casting on spot
 
 
-@pytest.mark.parametrize("azim,elev,dtype", [(0, 10, torch.float64), (110, 25, torch.float32), (230, -20, torch.float64)])
+# Four views around the cow (trimesh's rtree ray casting is slowest for
+# views whose rays run diagonally through the mesh's bounding box, so these
+# stay near the axes to keep the suite fast).
+@pytest.mark.parametrize(
+    "azim,elev,dtype",
+    [(0, 10, torch.float64), (90, 8, torch.float32), (180, -8, torch.float64), (270, 15, torch.float32)],
+)
 def test_matches_trimesh_ray_casting_on_spot(azim, elev, dtype):
     mesh = spot_trimesh()
     V = torch.tensor(mesh.vertices, dtype=torch.float64)
