@@ -108,7 +108,12 @@ def interpolate(
     # Work on covered pixels only and scatter into zeros: background pixels
     # get exact zeros and no gradient, and the cost follows the coverage.
     HW = H * W
-    idx = torch.nonzero(tri_id.reshape(-1) >= 0).squeeze(1)  # flat over [B, H, W]
+    compact = frags._compact
+    if compact is not None:  # straight from rasterize: per covered pixel
+        idx, w_bary, w_dx, w_dy = compact
+    else:
+        idx = torch.nonzero(tri_id.reshape(-1) >= 0).squeeze(1)  # flat over [B, H, W]
+        w_bary, w_dx, w_dy = (w.reshape(-1, 3).index_select(0, idx) for w in (frags.bary, frags.bary_dx, frags.bary_dy))
     corner = index.index_select(0, tri_id.reshape(-1).index_select(0, idx))  # [N, 3]
     if Ba == 1:
         vals = attr[0].index_select(0, corner.reshape(-1)).view(1, -1, 3, A)
@@ -120,14 +125,13 @@ def interpolate(
         vals = attr.index_select(1, corner.reshape(-1)).view(Ba, -1, 3, A)
     out_rows = Bo * HW if vals.shape[0] == 1 else HW
 
-    def weigh(w: Tensor) -> Tensor:
-        wc = w.reshape(-1, 3).index_select(0, idx).to(dtype)  # [N, 3]
-        vc = (wc[None, :, :, None] * vals).sum(-2)  # [Bv, N, A]
+    def weigh(wc: Tensor) -> Tensor:
+        vc = (wc.to(dtype)[None, :, :, None] * vals).sum(-2)  # [Bv, N, A]
         out = torch.zeros((vals.shape[0], out_rows, A), dtype=dtype, device=device)
         out.index_copy_(1, idx, vc)  # in place on fresh zeros: no extra copy
         return out.view(Bo, H, W, A)
 
-    value = weigh(frags.bary)
+    value = weigh(w_bary)
     if not derivatives:
         return value
-    return value, weigh(frags.bary_dx), weigh(frags.bary_dy)
+    return value, weigh(w_dx), weigh(w_dy)

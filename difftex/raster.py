@@ -25,8 +25,8 @@ top of the image (NDC y = +1), pixel ``(r, c)`` has its centre at NDC
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Iterator, Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -69,6 +69,11 @@ class Fragments:
     depth: Tensor
     bary_dx: Tensor
     bary_dy: Tensor
+    # (flat index of covered pixels, bary, bary_dx, bary_dy there), set by
+    # rasterize; not an init field, so dataclasses.replace() drops it.
+    _compact: Optional[tuple[Tensor, Tensor, Tensor, Tensor]] = field(
+        default=None, init=False, repr=False, compare=False
+    )
 
     @property
     def mask(self) -> Tensor:
@@ -147,10 +152,10 @@ def _check_resolution(resolution: Sequence[int]) -> tuple[int, int]:
 def _pow2_scale(v: Tensor) -> Tensor:
     """Per-triangle power-of-two factor bringing max |coordinate| into [0.5, 1).
 
-    Homogeneous coordinates may be scaled freely; a power of two keeps the
-    products exact, so the edge functions of two triangles sharing an edge
-    stay exact negatives of each other (watertightness), and huge inputs
-    cannot overflow the cross products. ``v``: [..., 3, 4] -> [...].
+    Scaling all corners of a triangle by one factor leaves its
+    perspective-correct barycentrics and depth unchanged, and keeps huge
+    inputs from overflowing the cross products. ``v``: [..., 3, 4] -> [...].
+    Detached: the outputs do not depend on it.
     """
     m = v.detach().abs().amax(dim=(-1, -2))
     _, exp = torch.frexp(m)
@@ -186,8 +191,9 @@ class _Items:
     pixel block it tests. ``fdata`` [n, 15] per item: sign-normalised edge
     functions e_k = a_k x + b_k y + c_k as (a_0..2, b_0..2, c_0..2) (inside:
     e_k >= thr_k), thr_0..2 (0 where the fill rule owns the edge, else the
-    smallest positive float) and the depth plane (zx, zy, zc). ``idata`` [n, 5]: global triangle index b * F + f,
-    first column, first row, width, height of the pixel block in use.
+    smallest positive float) and the depth plane (zx, zy, zc). ``idata``
+    [n, 5]: global triangle index b * F + f, first column, first row, width
+    and height of the pixel block in use.
     """
 
     fdata: Tensor
@@ -433,7 +439,7 @@ def _visibility(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool
         # z + 1 >= 0 on covered fragments, and the IEEE bits of non-negative
         # floats sort like the floats.
         zk = (z + 1).to(torch.float32).view(torch.int32).to(torch.int64)
-        key = (zk << 32) | (tri % F)
+        key = (zk << 32) | torch.remainder(tri, F)
         buf.scatter_reduce_(0, pix, key, "amin")
     tri_id = torch.where(buf == _KEY_EMPTY, -1, buf & 0xFFFFFFFF)
     return tri_id.view(B, H, W)
@@ -559,15 +565,22 @@ def rasterize(
     v = pos.reshape(-1, 4).index_select(0, vid.reshape(-1)).view(-1, 3, 4)  # [N, 3, 4]
     bary_c, depth_c, dx_c, dy_c = _bary_at(v, xs[col], ys[r], W, H)
 
-    # One scatter of all per-pixel values; the outputs are views into it.
-    packed = torch.cat((bary_c, dx_c, dy_c, depth_c[:, None]), dim=1)
-    out = packed.new_zeros((B * H * W, 10))
-    out.index_put_((idx,), packed)  # in place: no copy of the zeros
-    out = out.view(B, H, W, 10)
-    return Fragments(
+    # Separate dense outputs (not views of one packed tensor): the backward
+    # of a view would allocate a zero gradient of the whole packed buffer.
+    def dense(vals: Tensor) -> Tensor:
+        k = vals.shape[1:]
+        out = vals.new_zeros((B * H * W, *k))
+        out.index_put_((idx,), vals)  # in place on fresh zeros: no copy
+        return out.view(B, H, W, *k)
+
+    frags = Fragments(
         tri_id=tri_id,
-        bary=out[..., 0:3],
-        depth=out[..., 9],
-        bary_dx=out[..., 3:6],
-        bary_dy=out[..., 6:9],
+        bary=dense(bary_c),
+        depth=dense(depth_c),
+        bary_dx=dense(dx_c),
+        bary_dy=dense(dy_c),
     )
+    # Covered pixels in compact form for interpolate(): gathering from the
+    # dense tensors would cost a dense zero gradient per tensor in backward.
+    object.__setattr__(frags, "_compact", (idx, bary_c, dx_c, dy_c))
+    return frags
