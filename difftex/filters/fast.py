@@ -29,16 +29,29 @@ _REACH = {"nearest": 1, "linear": 1, "cubic": 2}
 _ROW = 256
 
 
+# F.pad modes that read what a wrap mode reads beyond the edge, for pads of
+# up to ``reach`` texels (mirror reads texel 0 at -1, as "replicate" does,
+# but texel 1 at -2, which no F.pad mode reads).
+_FPAD = {"repeat": "circular", "border": "constant"}
+
+
+def _fpad_mode(mode: str, p: int, n: int) -> str | None:
+    if mode == "clamp":
+        return None
+    if mode == "mirror":
+        return "replicate" if p == 1 else None
+    return _FPAD[mode] if (mode == "border" or p <= n) else None
+
+
 def _pad_axis(tex: Tensor, dim: int, p: int, mode: str, border: float) -> Tensor:
-    """Pad ``p`` texels on both ends of ``dim`` with what ``mode`` reads there."""
+    """Pad ``p`` texels on both ends of ``dim`` (2 or 3) with what ``mode`` reads there."""
     n = tex.shape[dim]
     if mode == "clamp" or p == 0:
         return tex
-    if mode == "border":
-        shape = list(tex.shape)
-        shape[dim] = p
-        pad = tex.new_full(shape, border)
-        return torch.cat((pad, tex, pad), dim)
+    fmode = _fpad_mode(mode, p, n)
+    if fmode is not None:
+        return F.pad(tex, (p, p, 0, 0) if dim == 3 else (0, 0, p, p), mode=fmode,
+                     **({"value": border} if fmode == "constant" else {}))
     # Indices -p..-1 and n..n+p-1, mapped the way wrap.wrap_index maps them.
     before = torch.arange(-p, 0, device=tex.device)
     after = torch.arange(n, n + p, device=tex.device)
@@ -50,6 +63,15 @@ def _pad_axis(tex: Tensor, dim: int, p: int, mode: str, border: float) -> Tensor
         after = torch.where(after >= n, 2 * n - 1 - after, after)
     idx = torch.cat((before, torch.arange(n, device=tex.device), after))
     return tex.index_select(dim, idx)
+
+
+def _pad(tex: Tensor, pu: int, pv: int, wrap_u: str, wrap_v: str, border: float) -> Tensor:
+    """Pad both axes, in one F.pad call where the two modes allow it."""
+    H, W = tex.shape[-2:]
+    fu, fv = _fpad_mode(wrap_u, pu, W), _fpad_mode(wrap_v, pv, H)
+    if pu and pv and fu is not None and fu == fv:
+        return F.pad(tex, (pu, pu, pv, pv), mode=fu, **({"value": border} if fu == "constant" else {}))
+    return _pad_axis(_pad_axis(tex, 3, pu, wrap_u, border), 2, pv, wrap_v, border)
 
 
 def _fold(u: Tensor, mode: str) -> Tensor:
@@ -69,7 +91,7 @@ def fast_forward(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: st
     reach = _REACH[kind]
     pu = 0 if wrap_u == "clamp" else reach
     pv = 0 if wrap_v == "clamp" else reach
-    tex = _pad_axis(_pad_axis(texture, 3, pu, wrap_u, border), 2, pv, wrap_v, border)
+    tex = _pad(texture, pu, pv, wrap_u, wrap_v, border)
     # A NaN / inf uv would index garbage inside the kernel: sample a safe
     # point instead and put the NaN back afterwards, so the pixel is NaN and
     # passes no gradient to the texture. (On CPU the check is free to skip.)
