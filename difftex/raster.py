@@ -313,7 +313,10 @@ def _prepare(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool) -
     # triangles sharing an edge have exactly opposite coefficients, so
     # exactly one of them owns such a pixel: no cracks, no double coverage.
     owns = (a > 0) | ((a == 0) & (b > 0))
-    tiny = torch.finfo(dtype).tiny * torch.finfo(dtype).eps  # smallest subnormal
+    # e > 0 is written e >= smallest subnormal so that one comparison per
+    # edge serves both cases (torch.set_flush_denormal(True) would turn it
+    # into e >= 0 and double-cover exact ties only).
+    tiny = torch.finfo(dtype).tiny * torch.finfo(dtype).eps
     thr = torch.where(owns, torch.zeros_like(a), torch.full_like(a, tiny))
     fdata = torch.cat((a, b, c, thr, zcoef), dim=1)  # [n, 15]
 
