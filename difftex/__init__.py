@@ -16,3 +16,4 @@ from . import camera
 from .mipmap import Mipmap, mipmap
 from .lod import lod
 from .textured_mesh import TexturedMesh
+from .lod import levels_needed

@@ -21,6 +21,7 @@ exact) so that squaring cannot overflow or underflow.
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple, Sequence
 
 import torch
@@ -234,3 +235,88 @@ def lod(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Tensor | obj
         check_float("lod_bias", lod_bias, (0, 3), shape_doc="scalar or [B, Ho, Wo]")
         check_same("lod_bias", lod_bias, "uv_dx", uv_dx)
     return level(log2_length(uv_dx, uv_dy, H, W), lod_bias, n)
+
+
+def levels_needed(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Tensor | object, *,
+                  lod_bias: Tensor | float = 0.0, max_aniso: float = 16, filter: str = "trilinear",
+                  tolerance: float | None = None) -> int:
+    """How many mip levels ``sample(filter=...)`` reads for these footprints: ``mipmap(..., max_levels=...)``.
+
+    Args:
+        uv_dx, uv_dy: [B, Ho, Wo, 2] uv per pixel column / row (DESIGN.md);
+            B = 1 broadcasts.
+        texture_size: (H, W) of level 0, or the texture [..., H, W], or a
+            Mipmap (then at most its level count).
+        lod_bias: as in ``sample``: a number or [B, Ho, Wo].
+        max_aniso, tolerance: as in ``sample`` (tolerance: "auto" only;
+            default sample's).
+        filter: any filter of ``sample``; the single-level ones need 1.
+
+    Returns:
+        int in ``[1, full chain]``: 1 + the coarsest level any pixel reads
+        (``ceil(D)`` of the filter's level D; ``round(D)`` for nearest-mip;
+        one more for "ewa", whose coarsest level is filtered differently,
+        unless that is the full chain). A pyramid of that depth gives the
+        same values as the full one.
+
+    Not differentiable (a count). Zero / NaN derivatives count as level 0,
+    infinite ones as the coarsest level. Raises ValueError / TypeError
+    naming the argument on bad shapes, dtypes, an unknown filter,
+    ``max_aniso < 1`` or ``tolerance < 0``.
+    """
+    from ._checks import broadcast_batch, check_float, check_same
+    from .mipmap import level_count
+    from .sample import DEFAULT_TOLERANCE, FILTERS, MIP_FILTERS, _check_max_aniso, _check_tolerance
+    from .filters.anisotropic import tap_count
+    from .filters.auto import auto_tap_count
+    check_float("uv_dx", uv_dx, 4, last=2, shape_doc="[B, Ho, Wo, 2]")
+    check_float("uv_dy", uv_dy, 4, last=2, shape_doc="[B, Ho, Wo, 2]")
+    check_same("uv_dy", uv_dy, "uv_dx", uv_dx)
+    if uv_dx.shape[1:] != uv_dy.shape[1:]:
+        raise ValueError(f"uv_dy: expected the shape of uv_dx {tuple(uv_dx.shape)} (B = 1 broadcasts), "
+                         f"got {tuple(uv_dy.shape)}")
+    if not isinstance(filter, str) or filter not in FILTERS:
+        raise ValueError(f"filter: unknown filter {filter!r}; expected one of {FILTERS}")
+    max_aniso = _check_max_aniso(max_aniso)
+    tolerance = _check_tolerance(DEFAULT_TOLERANCE if tolerance is None else tolerance)
+    H, W, full = _size_and_levels(texture_size)
+    if full is None:
+        full = level_count(H, W)
+    if isinstance(lod_bias, Tensor):
+        check_float("lod_bias", lod_bias, (0, 3), shape_doc="scalar or [B, Ho, Wo]")
+        check_same("lod_bias", lod_bias, "uv_dx", uv_dx)
+        if lod_bias.dim() == 3 and lod_bias.shape[1:] != uv_dx.shape[1:3]:
+            raise ValueError(f"lod_bias: expected a scalar or [B, Ho, Wo] like uv_dx, got {tuple(lod_bias.shape)}")
+    elif isinstance(lod_bias, bool) or not isinstance(lod_bias, (int, float)):
+        raise TypeError(f"lod_bias: expected a number or a float tensor [B, Ho, Wo], got {type(lod_bias).__name__}")
+    sizes = [uv_dx.shape[0], uv_dy.shape[0]] + ([lod_bias.shape[0]] if isinstance(lod_bias, Tensor) and
+                                                lod_bias.dim() == 3 else [])
+    broadcast_batch(["uv_dx", "uv_dy", "lod_bias"][:len(sizes)], sizes)
+    if filter not in MIP_FILTERS or full == 1:
+        return 1
+    with torch.no_grad():
+        bias = lod_bias.detach() if isinstance(lod_bias, Tensor) else float(lod_bias)
+        B = max(uv_dx.shape[0], uv_dy.shape[0], bias.shape[0] if isinstance(bias, Tensor) and bias.dim() else 1)
+        dx = uv_dx.detach().expand(B, -1, -1, -1)
+        dy = uv_dy.detach().expand(B, -1, -1, -1)
+        if isinstance(bias, Tensor) and bias.dim() == 3:
+            bias = bias.expand(B, -1, -1)
+        if dx.numel() == 0:
+            return 1
+        if filter in ("trilinear", "nearest-mip"):
+            log2_len = log2_length(dx, dy, H, W)
+        else:
+            fp = footprint(dx, dy, H, W)
+            ell = ellipse(fp)
+            if filter == "ewa":  # the level of EWA's minor axis, grown to major / max_aniso
+                log2_len = torch.maximum(ell.log2_minor, ell.log2_major - math.log2(max_aniso))
+            else:
+                n = (tap_count(ell, fp, max_aniso) if filter == "anisotropic"
+                     else auto_tap_count(ell, fp, bias, max_aniso, tolerance))
+                log2_len = ell.log2_major - torch.log2(n.to(dx.dtype))
+        D = level(log2_len, bias, full)
+        top = torch.floor(D + 0.5) if filter == "nearest-mip" else torch.ceil(D)
+        need = int(top.max().item()) + 1
+    if filter == "ewa":
+        need += 1  # never let a truncated top stand in for the real coarsest level
+    return min(need, full)

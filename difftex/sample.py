@@ -10,17 +10,21 @@ from torch import Tensor
 
 from ._checks import broadcast_batch, check_float, check_same, describe
 from .filters.anisotropic import anisotropic_points
+from .filters.auto import auto_tap_count
 from .filters.basic import separable_sample
 from .filters.ewa import ewa_points
 from .filters.trilinear import trilinear_points
 from .lod import ellipse, footprint, level, log2_length
-from .mipmap import Mipmap, mipmap
+from .mipmap import Mipmap, level_count, mipmap
 from .wrap import Wrap, parse_wrap
 
 # Filters that read one texture level; the value is the per-axis kernel.
 SEPARABLE = {"nearest": "nearest", "bilinear": "linear", "bicubic": "cubic"}
 # Filters that read a mip pyramid and need uv_dx / uv_dy.
-MIP_FILTERS = ("trilinear", "nearest-mip", "anisotropic", "ewa")
+MIP_FILTERS = ("trilinear", "nearest-mip", "anisotropic", "ewa", "auto")
+# Default of ``tolerance`` ("auto"): within 0.5 dB of anisotropic 16 on the
+# grazing-plane, sphere and spot scenes (docs/auto_filter.md).
+DEFAULT_TOLERANCE = 0.25
 FILTERS = tuple(SEPARABLE) + MIP_FILTERS
 
 
@@ -35,6 +39,7 @@ def sample(
     uv_dy: Optional[Tensor] = None,
     lod_bias: Union[float, Tensor] = 0.0,
     max_aniso: float = 16,
+    tolerance: float = DEFAULT_TOLERANCE,
 ) -> Tensor:
     """Sample a texture at uv coordinates.
 
@@ -53,9 +58,12 @@ def sample(
             filters "trilinear" (level ``D = log2 L + lod_bias``, L the longer
             footprint vector in texels, blend of floor(D) and floor(D) + 1),
             "nearest-mip" (bilinear at level round(D)), "anisotropic" (up to
-            max_aniso trilinear taps along the footprint's major axis) and
-            "ewa" (Gaussian elliptical weighted average, pbrt-v4 style). See
-            ``difftex.filters`` for each.
+            max_aniso trilinear taps along the footprint's major axis),
+            "ewa" (Gaussian elliptical weighted average, pbrt-v4 style) and
+            "auto" (per pixel the cheapest that ``tolerance`` allows: one
+            bilinear tap on level 0 where magnified, one trilinear tap where
+            the footprint is nearly round, else anisotropic with just enough
+            taps). See ``difftex.filters`` for each.
         wrap: "repeat" | "clamp" | "mirror" | "border", one for both axes or a
             pair (wrap_u, wrap_v).
         border_value: the constant that "border" reads outside the texture.
@@ -63,8 +71,15 @@ def sample(
             (W, H) texels per pixel); required by the mip filters. B = 1
             broadcasts.
         lod_bias: added to the level; a number or a [B, Ho, Wo] tensor.
-        max_aniso: most taps per pixel ("anisotropic"), largest axis ratio
-            kept ("ewa"); a number >= 1.
+        max_aniso: most taps per pixel ("anisotropic", "auto"), largest
+            axis ratio kept ("ewa"); a number >= 1.
+        tolerance: "auto" only: how much wider than the footprint's minor
+            axis (floored at one level-0 texel) a tap's prefilter may be, as
+            a fraction; a number >= 0. 0 takes the anisotropic filter's taps
+            (fewer only where the minor axis is under a texel); larger
+            values take about ``1 + tolerance`` times fewer taps and blur
+            more across the footprint. The default 0.25 stays within 0.5 dB
+            of "anisotropic" at the same max_aniso on the test scenes.
 
     Returns:
         [B, C, Ho, Wo], same dtype and device as the inputs.
@@ -80,7 +95,7 @@ def sample(
 
     Raises ValueError naming the argument on bad shapes, batch mismatch,
     different devices, an unknown filter / wrap, missing derivatives for a
-    mip filter or ``max_aniso < 1``; TypeError on non-float tensors or mixed
+    mip filter, ``max_aniso < 1`` or ``tolerance < 0``; TypeError on non-float tensors or mixed
     dtypes.
     """
     pyramid = None
@@ -96,6 +111,7 @@ def sample(
     if not isinstance(filter, str) or filter not in FILTERS:
         raise ValueError(f"filter: unknown filter {filter!r}; expected one of {FILTERS}")
     max_aniso = _check_max_aniso(max_aniso)
+    tolerance = _check_tolerance(tolerance)
     _, Ho, Wo, _ = uv.shape
     derivs = _check_derivatives(filter, uv, texture, uv_dx, uv_dy)
     bias = _check_bias(lod_bias, uv, texture)
@@ -108,8 +124,8 @@ def sample(
     Bt, C = texture.shape[:2]
     if filter in MIP_FILTERS:
         if pyramid is None:
-            pyramid = mipmap(texture)
-        return _sample_mip(pyramid, uv, derivs[0], derivs[1], bias, B, filter, max_aniso,
+            pyramid = texture
+        return _sample_mip(pyramid, uv, derivs[0], derivs[1], bias, B, filter, max_aniso, tolerance,
                            wrap_u, wrap_v, float(border_value))
     if Bt == 1:
         # One texture for every view: all sample points in one flat row.
@@ -128,6 +144,14 @@ def _check_max_aniso(max_aniso: object) -> float:
     if not (math.isfinite(max_aniso) and max_aniso >= 1):
         raise ValueError(f"max_aniso: expected a finite number >= 1, got {max_aniso!r}")
     return float(max_aniso)
+
+
+def _check_tolerance(tolerance: object) -> float:
+    if isinstance(tolerance, bool) or not isinstance(tolerance, numbers.Real):
+        raise TypeError(f"tolerance: expected a number >= 0, got {type(tolerance).__name__}")
+    if not (math.isfinite(tolerance) and tolerance >= 0):
+        raise ValueError(f"tolerance: expected a finite number >= 0, got {tolerance!r}")
+    return float(tolerance)
 
 
 def _check_derivatives(filter: str, uv: Tensor, texture: Tensor, uv_dx: object, uv_dy: object) -> list[Tensor]:
@@ -162,11 +186,16 @@ def _check_bias(lod_bias: object, uv: Tensor, texture: Tensor) -> Union[float, T
     return float(lod_bias)
 
 
-def _sample_mip(pyramid: Mipmap, uv: Tensor, uv_dx: Tensor, uv_dy: Tensor, bias: Union[float, Tensor], B: int,
-                filter: str, max_aniso: float, wrap_u: str, wrap_v: str, border: float) -> Tensor:
-    """The mip filters on flat point lists; one pass per texture of the batch."""
-    levels = pyramid.levels
-    Bt, C, H, W = levels[0].shape
+def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy: Tensor,
+                bias: Union[float, Tensor], B: int, filter: str, max_aniso: float, tolerance: float,
+                wrap_u: str, wrap_v: str, border: float) -> Tensor:
+    """The mip filters on flat point lists; one pass per texture of the batch.
+
+    A plain texture tensor is turned into its pyramid here: "auto" builds
+    only the levels its footprints read (the same values as the full chain).
+    """
+    base = pyramid.levels[0] if isinstance(pyramid, Mipmap) else pyramid
+    Bt, C, H, W = base.shape
     _, Ho, Wo, _ = uv.shape
     P = Ho * Wo
     flat = lambda t: t.expand(B, Ho, Wo, *t.shape[3:]).reshape(B * P, *t.shape[3:])
@@ -178,6 +207,17 @@ def _sample_mip(pyramid: Mipmap, uv: Tensor, uv_dx: Tensor, uv_dy: Tensor, bias:
     else:
         fp = footprint(dx, dy, H, W)
         ell = ellipse(fp)
+    n_auto = auto_tap_count(ell, fp, bias, max_aniso, tolerance) if filter == "auto" else None
+    if isinstance(pyramid, Tensor):
+        depth = None
+        if n_auto is not None and n_auto.numel():
+            with torch.no_grad():
+                b = bias.detach() if isinstance(bias, Tensor) else bias
+                D = level(ell.log2_major.detach() - torch.log2(n_auto.to(dx.dtype)), b, level_count(H, W))
+                # ceil(D) is the coarsest level read (floor(D) + 1 where D is fractional).
+                depth = int(D.max().ceil().item()) + 1
+        pyramid = mipmap(pyramid, max_levels=depth)
+    levels = pyramid.levels
 
     def run(lv: list[Tensor], sl: slice) -> Tensor:
         b = bias[sl] if isinstance(bias, Tensor) and bias.dim() == 1 else bias
@@ -186,6 +226,8 @@ def _sample_mip(pyramid: Mipmap, uv: Tensor, uv_dx: Tensor, uv_dy: Tensor, bias:
             return trilinear_points(lv, pts[sl], D, wrap_u, wrap_v, border, nearest_mip=filter == "nearest-mip")
         f = type(fp)(*(x[sl] for x in fp))
         e = type(ell)(*(x[sl] for x in ell))
+        if n_auto is not None:  # "auto" is the anisotropic filter with its own tap counts
+            return anisotropic_points(lv, pts[sl], f, e, b, max_aniso, wrap_u, wrap_v, border, taps=n_auto[sl])
         fn = anisotropic_points if filter == "anisotropic" else ewa_points
         return fn(lv, pts[sl], f, e, b, max_aniso, wrap_u, wrap_v, border)
 

@@ -39,7 +39,8 @@ def tap_count(ell: Ellipse, fp: Footprint, max_aniso: float) -> Tensor:
 
 
 def anisotropic_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse, lod_bias: Tensor | float,
-                       max_aniso: float, wrap_u: str, wrap_v: str, border: float) -> Tensor:
+                       max_aniso: float, wrap_u: str, wrap_v: str, border: float, *,
+                       taps: Tensor | None = None) -> Tensor:
     """Anisotropic filtering of one texture.
 
     Args:
@@ -49,6 +50,8 @@ def anisotropic_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell:
         lod_bias: scalar or [M].
         max_aniso: most taps per point (>= 1).
         wrap_u, wrap_v, border: as in ``separable_sample``.
+        taps: optional [M] int64 tap count per point (>= 1) replacing
+            ``tap_count``; the "auto" filter passes its own, smaller counts.
 
     Returns:
         [C, M]. Differentiable in the levels, uv, the footprint (through the
@@ -57,7 +60,7 @@ def anisotropic_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell:
     """
     M = uv.shape[0]
     H, W = levels[0].shape[-2:]
-    n = tap_count(ell, fp, max_aniso)
+    n = tap_count(ell, fp, max_aniso) if taps is None else taps
     nf = n.to(uv.dtype)
     D = level(ell.log2_major - torch.log2(nf), lod_bias, len(levels))
     if bool((n == 1).all()):

@@ -1,0 +1,86 @@
+"""The "auto" filter: per point, the anisotropic filter with the fewest taps that are accurate enough.
+
+The anisotropic filter (``anisotropic.py``) takes ``N = ceil(major / minor)``
+trilinear taps, spaced ``s = major / N`` texels apart along the major axis,
+each read at level ``log2 s + lod_bias``: its prefilter is about ``s``
+texels wide, so a tap is round and covers the minor axis exactly. "auto"
+runs the same code with a smaller per-point count,
+
+    N = min(ceil(major' / ((1 + tolerance) * max(minor', 1))), ceil(major / minor), floor(max_aniso)),
+
+where ``x' = x * 2^lod_bias`` (texels of level 0, after the bias). Two
+things make it smaller:
+
+* ``tolerance``: a tap's prefilter may be up to ``1 + tolerance`` times
+  wider than the minor axis (extra blur across the footprint, in exchange
+  for ``1 + tolerance`` times fewer taps);
+* the floor of one texel: where the minor axis is under a texel of level 0
+  the taps read level 0 anyway (the level clamps), so taps closer than a
+  texel only re-read the bilinear interpolant; the spacing is kept at one
+  texel instead.
+
+The special cases fall out of the formula: a magnified point (``major' <=
+1 + tolerance``) gets one tap at level ~0, i.e. bilinear on level 0; a
+nearly round footprint (``major / minor <= 1 + tolerance``) gets one tap,
+i.e. trilinear at ``log2 major``; a long one gets just enough taps, at
+most ``max_aniso``. ``tolerance = 0`` gives the anisotropic filter's count
+wherever the minor axis is a texel or more.
+
+Points are not grouped by method: one ``anisotropic_points`` call serves
+them all (a one-tap point costs one trilinear tap, a magnified one a single
+bilinear read), so values, gradients and degenerate-input handling are the
+anisotropic filter's.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from ..lod import Ellipse, Footprint
+from .anisotropic import _RATIO_TOL, anisotropic_points, tap_count
+
+# exp2 of a larger exponent would overflow float32; any count past 2^64 is
+# capped at max_aniso anyway.
+_MAX_LOG2 = 64.0
+
+
+def auto_tap_count(ell: Ellipse, fp: Footprint, lod_bias: Tensor | float, max_aniso: float,
+                   tolerance: float) -> Tensor:
+    """Trilinear taps per point of the "auto" filter (module docstring): [M] int64 in ``[1, floor(max_aniso)]``."""
+    cap = tap_count(ell, fp, max_aniso)  # also 1 at zero / NaN / infinite footprints
+    bias = lod_bias.detach() if isinstance(lod_bias, Tensor) else lod_bias
+    with torch.no_grad():
+        # In log2 so that huge biases or lengths cannot overflow; degenerate
+        # lengths are +-_FAR there (finite), a NaN bias gives NaN -> 1 tap.
+        minor_floor = torch.clamp(ell.log2_minor + bias, min=0.0)
+        x = ell.log2_major + bias - minor_floor
+        full = torch.ceil(torch.exp2(x.clamp(max=_MAX_LOG2)) - _RATIO_TOL)
+        n = torch.ceil(full / (1.0 + tolerance) - _RATIO_TOL)
+        n = torch.nan_to_num(n, nan=1.0).clamp_(min=1.0).long()
+    return torch.minimum(n, cap)
+
+
+def auto_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse, lod_bias: Tensor | float,
+                max_aniso: float, tolerance: float, wrap_u: str, wrap_v: str, border: float) -> Tensor:
+    """The "auto" filter on one texture.
+
+    Args:
+        levels: the pyramid of one texture, ``[1, C, H_k, W_k]`` each.
+        uv: [M, 2] sample points.
+        fp, ell: footprint and its ellipse per point (``difftex.lod``).
+        lod_bias: scalar or [M].
+        max_aniso: most taps per point (>= 1).
+        tolerance: allowed excess width of a tap's prefilter over the
+            footprint's minor axis, as a fraction (>= 0).
+        wrap_u, wrap_v, border: as in ``separable_sample``.
+
+    Returns:
+        [C, M]; NaN where uv is not finite. Differentiable like the
+        anisotropic filter: in the levels, uv, the footprint (level and tap
+        positions; the count is piecewise constant) and lod_bias.
+    """
+    n = auto_tap_count(ell, fp, lod_bias, max_aniso, tolerance)
+    return anisotropic_points(levels, uv, fp, ell, lod_bias, max_aniso, wrap_u, wrap_v, border, taps=n)
