@@ -73,13 +73,13 @@ def sample(
         lod_bias: added to the level; a number or a [B, Ho, Wo] tensor.
         max_aniso: most taps per pixel ("anisotropic", "auto"), largest
             axis ratio kept ("ewa"); a number >= 1.
-        tolerance: "auto" only: how much wider than the footprint's minor
-            axis (floored at one level-0 texel) a tap's prefilter may be, as
-            a fraction; a number >= 0. 0 takes the anisotropic filter's taps
-            (fewer only where the minor axis is under a texel); larger
-            values take about ``1 + tolerance`` times fewer taps and blur
-            more across the footprint. The default 0.25 stays within 0.5 dB
-            of "anisotropic" at the same max_aniso on the test scenes.
+        tolerance: "auto" only: how much wider a tap's prefilter (2^level)
+            may be than the anisotropic filter's, as a fraction; a number
+            >= 0. 0 takes the anisotropic filter's taps (fewer only where
+            the minor axis is under a level-0 texel); larger values take
+            ``1 + tolerance`` times fewer taps (rounded up) and blur more
+            across the footprint. The default 0.25 stays within 0.5 dB of
+            "anisotropic" at the same max_aniso on the test scenes.
 
     Returns:
         [B, C, Ho, Wo], same dtype and device as the inputs.
