@@ -95,8 +95,8 @@ def sample(
 
     Raises ValueError naming the argument on bad shapes, batch mismatch,
     different devices, an unknown filter / wrap, missing derivatives for a
-    mip filter, ``max_aniso < 1`` or ``tolerance < 0``; TypeError on non-float tensors or mixed
-    dtypes.
+    mip filter, ``max_aniso < 1`` or ``tolerance < 0``; TypeError on
+    non-float tensors or mixed dtypes.
     """
     pyramid = None
     if isinstance(texture, Mipmap):
