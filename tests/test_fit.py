@@ -11,7 +11,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "experiments"))
 import fit_texture  # noqa: E402
 import fit_uv  # noqa: E402
 
-SMALL = dict(iters=40, res=64, views=16, batch=4, progress=False, save=False)
+SMALL = dict(iters=40, res=64, views=16, batch=4, eval_views=8, progress=False, save=False)
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +45,7 @@ def test_uv_fit_reduces_error_fivefold():
 
 
 def test_fit_writes_metrics_and_images(tmp_path):
-    m = fit_texture.fit(filter="trilinear", iters=2, res=32, views=4, batch=2, progress=False, out=tmp_path)
+    m = fit_texture.fit(filter="trilinear", iters=2, res=32, views=4, batch=2, eval_views=2, progress=False, out=tmp_path)
     import json
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert {"filter", "iters", "texture_psnr", "image_psnr", "seconds"} <= saved.keys()
