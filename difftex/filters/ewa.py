@@ -154,6 +154,15 @@ def _ewa_level(lev: Tensor, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Ten
     return acc[:C] / acc[C]
 
 
+def _drop_periods(u: Tensor, mode: str) -> Tensor:
+    """u minus a whole number of the wrap mode's periods (none for clamp / border); gradient 1."""
+    if mode == "repeat":
+        return u - torch.floor(u.detach())
+    if mode == "mirror":
+        return u - 2 * torch.floor(u.detach() * 0.5)
+    return u
+
+
 def ewa_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse, lod_bias: Tensor | float,
                max_aniso: float, wrap_u: str, wrap_v: str, border: float) -> Tensor:
     """EWA filtering of one texture.
@@ -174,6 +183,11 @@ def ewa_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse
     H, W = levels[0].shape[-2:]
     ok = torch.isfinite(uv).all(-1)
     uv_safe = torch.where(ok.unsqueeze(-1), uv, torch.zeros_like(uv))
+    # Take whole periods out before the texel position uv * W is formed: at
+    # |uv| ~ 1e6 that product rounds to 4 texels in float32 (64-texel
+    # texture), which the integer origin in _ewa_level cannot undo; the
+    # difference of uv and its floor is exact. (repeat: period 1, mirror: 2.)
+    uv_safe = torch.stack([_drop_periods(uv_safe[:, 0], wrap_u), _drop_periods(uv_safe[:, 1], wrap_v)], -1)
     sigma, minor, log2_minor = _covariance(fp, ell, max_aniso)
     D = level(log2_minor, lod_bias, len(levels))
     scale = torch.exp2(fp.log2_scale)
