@@ -18,13 +18,7 @@ from difftex.scenes import checker_noise_texture, grazing_plane, psnr
 f64 = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # Many small ops: one thread is faster and steadier on a shared 2-core machine.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # conftest.py: many small ops
 
 
 def _gen(seed: int) -> torch.Generator:

@@ -18,15 +18,7 @@ MIP = ("trilinear", "nearest-mip", "anisotropic", "ewa")
 f64 = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # These tests run many small ops; on a shared 2-core machine every
-    # intra-op thread hand-off can stall for milliseconds, so one thread is
-    # both faster and steadier. Restored afterwards for the other modules.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # conftest.py: many small ops
 
 
 def _gen(seed: int) -> torch.Generator:

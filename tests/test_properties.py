@@ -24,12 +24,7 @@ SETTINGS = dict(deadline=None, derandomize=True, suppress_health_check=[HealthCh
 MAGNITUDES = [0.0, 1e-30, 1e-7, 1e-3, 0.05, 0.3, 1.0, 7.0, 1e2, 1e4]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # conftest.py: many small ops
 
 
 @st.composite
