@@ -211,6 +211,15 @@ def main() -> None:
             f"{r['fwd_ms']:.1f} ({r['fwd_min']:.1f}) | {r['fwdbwd_ms']:.1f} ({r['fwdbwd_min']:.1f}) | "
             f"{r['peak_mb']:.0f} | {r['covered']:.0%} |"
         )
+    lines += [
+        "",
+        "Columns: `rasterize` alone; `+ interpolate` adds `interpolate(uv, faces, frags, derivatives=True)` "
+        "(uv, uv_dx, uv_dy); `fwd+bwd` adds the backward of a loss on all three to the clip-space positions "
+        "and the uv. Peak MB: growth of the process's peak memory during the first fwd+bwd of a fresh "
+        "process (CPU: resident set high-water mark; CUDA: max_memory_allocated). Camera: 45 degree "
+        "perspective looking at the mesh from a fixed oblique direction; no backface culling. "
+        "Regenerate with `python experiments/bench_raster.py --out docs/bench_raster.md`.",
+    ]
     table = "\n".join(lines)
     print()
     print(table)
