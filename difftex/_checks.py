@@ -51,3 +51,24 @@ def broadcast_batch(names: Sequence[str], sizes: Sequence[int]) -> int:
         listed = ", ".join(f"{n} {s}" for n, s in zip(names, sizes))
         raise ValueError(f"batch sizes do not match ({listed}): expected equal sizes or 1")
     return big.pop() if big else 1
+
+
+def check_index(name: str, idx: object, num_rows: int, rows_doc: str, device: torch.device) -> Tensor:
+    """An [F, 3] integer index array into ``num_rows`` rows, as int64 on ``device``.
+
+    Raises TypeError unless ``idx`` is an integer tensor, ValueError naming
+    ``name`` on another shape or indices outside ``[0, num_rows)``;
+    ``rows_doc`` says what the rows are (e.g. "number of vertices").
+    """
+    if not isinstance(idx, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(idx).__name__}")
+    if idx.dtype.is_floating_point or idx.dtype.is_complex or idx.dtype == torch.bool:
+        raise TypeError(f"{name} must be an integer tensor, got dtype {idx.dtype}")
+    if idx.dim() != 2 or idx.shape[1] != 3:
+        raise ValueError(f"{name} must have shape [F, 3], got {tuple(idx.shape)}")
+    idx = idx.to(device=device, dtype=torch.int64)
+    if idx.numel() > 0:
+        lo, hi = int(idx.min()), int(idx.max())
+        if lo < 0 or hi >= num_rows:
+            raise ValueError(f"{name} indices must lie in [0, {num_rows - 1}] ({rows_doc}), got values in [{lo}, {hi}]")
+    return idx

@@ -5,26 +5,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ._checks import check_index
 from .raster import Fragments
 
 __all__ = ["interpolate"]
-
-
-def _check_index(faces: Tensor, name: str, num_rows: int, device: torch.device) -> Tensor:
-    if not isinstance(faces, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(faces).__name__}")
-    if faces.dtype.is_floating_point or faces.dtype.is_complex or faces.dtype == torch.bool:
-        raise TypeError(f"{name} must be an integer tensor, got dtype {faces.dtype}")
-    if faces.dim() != 2 or faces.shape[1] != 3:
-        raise ValueError(f"{name} must have shape [F, 3], got {tuple(faces.shape)}")
-    faces = faces.to(device=device, dtype=torch.int64)
-    if faces.numel() > 0:
-        lo, hi = int(faces.min()), int(faces.max())
-        if lo < 0 or hi >= num_rows:
-            raise ValueError(
-                f"{name} indices must lie in [0, {num_rows - 1}] (rows of attr), got values in [{lo}, {hi}]"
-            )
-    return faces
 
 
 def interpolate(
@@ -77,9 +61,9 @@ def interpolate(
     device = frags.tri_id.device
     attr = attr.to(device)
     index_name = "faces" if attr_faces is None else "attr_faces"
-    faces = _check_index(faces, "faces", attr.shape[1] if attr_faces is None else 2**62, device)
+    faces = check_index("faces", faces, attr.shape[1] if attr_faces is None else 2**62, "rows of attr", device)
     if attr_faces is not None:
-        attr_faces = _check_index(attr_faces, "attr_faces", attr.shape[1], device)
+        attr_faces = check_index("attr_faces", attr_faces, attr.shape[1], "rows of attr", device)
         if attr_faces.shape[0] != faces.shape[0]:
             raise ValueError(
                 f"attr_faces must have one row per face of faces ({faces.shape[0]}), got {attr_faces.shape[0]}"

@@ -31,6 +31,8 @@ from typing import Iterator, Optional, Sequence
 import torch
 from torch import Tensor
 
+from ._checks import check_index
+
 __all__ = ["Fragments", "rasterize"]
 
 # Candidate (triangle, pixel) pairs evaluated per chunk; bounds the memory of
@@ -105,24 +107,6 @@ def _check_pos(pos: Tensor, name: str = "pos") -> Tensor:
     if not bool(torch.isfinite(pos.detach()).all()):
         raise ValueError(f"{name} contains non-finite values (NaN or inf); clip-space positions must be finite")
     return pos
-
-
-def _check_faces(faces: Tensor, num_vertices: int, device: torch.device, name: str = "faces") -> Tensor:
-    if not isinstance(faces, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(faces).__name__}")
-    if faces.dtype.is_floating_point or faces.dtype.is_complex or faces.dtype == torch.bool:
-        raise TypeError(f"{name} must be an integer tensor, got dtype {faces.dtype}")
-    if faces.dim() != 2 or faces.shape[1] != 3:
-        raise ValueError(f"{name} must have shape [F, 3], got {tuple(faces.shape)}")
-    faces = faces.to(device=device, dtype=torch.int64)
-    if faces.numel() > 0:
-        lo, hi = int(faces.min()), int(faces.max())
-        if lo < 0 or hi >= num_vertices:
-            raise ValueError(
-                f"{name} indices must lie in [0, {num_vertices - 1}] (number of vertices), "
-                f"got values in [{lo}, {hi}]"
-            )
-    return faces
 
 
 def _check_resolution(resolution: Sequence[int]) -> tuple[int, int]:
@@ -455,7 +439,7 @@ def _coverage_count(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cu
     without culling, {0, 1} with it); not part of the public API.
     """
     pos = _check_pos(pos)
-    faces = _check_faces(faces, pos.shape[1], pos.device)
+    faces = check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
     H, W = _check_resolution(resolution)
     B = pos.shape[0]
     count = torch.zeros(B * H * W, dtype=torch.int64, device=pos.device)
@@ -548,7 +532,7 @@ def rasterize(
     argument on bad shapes, out-of-range faces or non-finite positions.
     """
     pos = _check_pos(pos)
-    faces = _check_faces(faces, pos.shape[1], pos.device)
+    faces = check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
     H, W = _check_resolution(resolution)
     B = pos.shape[0]
     with torch.no_grad():
