@@ -127,14 +127,8 @@ def sample(
             pyramid = texture
         return _sample_mip(pyramid, uv, derivs[0], derivs[1], bias, B, filter, max_aniso, tolerance,
                            wrap_u, wrap_v, float(border_value))
-    if Bt == 1:
-        # One texture for every view: all sample points in one flat row.
-        flat_uv = uv.reshape(1, -1, 2)
-    else:
-        flat_uv = uv.expand(B, -1, -1, -1).reshape(B, -1, 2)
+    flat_uv = uv.expand(B, -1, -1, -1).reshape(B, -1, 2)
     out = separable_sample(texture, flat_uv, SEPARABLE[filter], wrap_u, wrap_v, border_value)
-    if Bt == 1 and B > 1:
-        return out.view(C, B, Ho, Wo).transpose(0, 1)
     return out.view(B, C, Ho, Wo)
 
 

@@ -36,7 +36,7 @@ def _grads(fn, tex, uv):
     tex = tex.clone().requires_grad_()
     uv = uv.clone().requires_grad_()
     out = fn(tex, uv)
-    g = torch.randn_like(out, generator=None)
+    g = torch.randn(out.shape, dtype=out.dtype, device=out.device)  # not randn_like: it follows strides
     gt, gu = torch.autograd.grad(out, (tex, uv), g, allow_unused=True)
     return out, gt, gu if gu is not None else torch.zeros_like(uv)
 
@@ -277,3 +277,26 @@ def test_fast_path_equals_reference_for_every_mode_pair(filt, monkeypatch):
                 results.append(_grads(fn, tex, uv))
             for a, b in zip(*results):
                 torch.testing.assert_close(a, b, atol=1e-9, rtol=0, msg=f"{filt} {wu}/{wv}")
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+@pytest.mark.parametrize("filt", ["nearest", "bilinear", "bicubic"])
+def test_many_points_split_over_threads(filt, threads, monkeypatch):
+    # Enough points of one view for the fast path to lay them out as several
+    # row blocks (one per thread) of the texture: values and gradients must
+    # not depend on the split.
+    monkeypatch.setattr(basic, "IMPL", "fast")
+    tex, uv = _rand_case(13, (9, 14), B=1, out_hw=(41, 37), lo=-1.0, hi=2.0)
+    n = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        torch.manual_seed(0)
+        got = _grads(lambda t, u: difftex.sample(t, u, filter=filt, wrap="clamp"), tex[:1], uv)
+    finally:
+        torch.set_num_threads(n)
+    gs = lambda t, u: F.grid_sample(t.expand(u.shape[0], -1, -1, -1), 2 * u - 1, mode=GS_MODE[filt],
+                                    padding_mode="border", align_corners=False)
+    torch.manual_seed(0)
+    ref = _grads(gs, tex[:1], uv)
+    for a, b in zip(got, ref):
+        torch.testing.assert_close(a, b, atol=1e-9, rtol=0)

@@ -118,22 +118,34 @@ def _contract(vals: Tensor, wx: Tensor, wy: Tensor) -> Tensor:
     return (rows * wy.unsqueeze(1)).sum(2)
 
 
+def _one_row(texture: Tensor, uv: Tensor) -> Tensor:
+    """One texture for several rows of points: gather from it as one long row."""
+    return uv.reshape(1, -1, 2) if texture.shape[0] == 1 and uv.shape[0] > 1 else uv
+
+
 def separable_forward(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float) -> Tensor:
     """Filtered values, flat layout (see module docstring)."""
     Bt, C, H, W = texture.shape
+    B = uv.shape[0]
+    uv = _one_row(texture, uv)
     flat = texture.reshape(Bt, C, H * W)
     M, K = uv.shape[1], len(_OFFSETS[kind])
     parts = []
     for a, b in _chunks(M, C * K * K):
         taps = _Taps(texture, uv[:, a:b], kind, wrap_u, wrap_v)
         parts.append(_contract(taps.read(flat, border), taps.wx, taps.wy))
-    return parts[0] if len(parts) == 1 else torch.cat(parts, -1)
+    out = parts[0] if len(parts) == 1 else torch.cat(parts, -1)
+    return out.view(C, B, -1).transpose(0, 1) if B != Bt else out
 
 
 def separable_backward(texture: Tensor, uv: Tensor, grad_out: Tensor, kind: str, wrap_u: str, wrap_v: str,
                        border: float, need_tex: bool, need_uv: bool) -> tuple[Tensor | None, Tensor | None]:
     """Gradients w.r.t. texture and uv, in differentiable ops (double backward)."""
     Bt, C, H, W = texture.shape
+    B = uv.shape[0]
+    uv = _one_row(texture, uv)
+    if B != Bt:
+        grad_out = grad_out.transpose(0, 1).reshape(1, C, -1)
     flat = texture.reshape(Bt, C, H * W)
     grad_out = grad_out.contiguous()
     need_uv = need_uv and kind != "nearest"
@@ -161,7 +173,8 @@ def separable_backward(texture: Tensor, uv: Tensor, grad_out: Tensor, kind: str,
     grad_tex = grad_flat.view(Bt, C, H, W) if need_tex else None
     if not need_uv:
         return grad_tex, None
-    return grad_tex, grad_uv[0] if len(grad_uv) == 1 else torch.cat(grad_uv, 1)
+    grad_uv = grad_uv[0] if len(grad_uv) == 1 else torch.cat(grad_uv, 1)
+    return grad_tex, grad_uv.view(B, -1, 2)
 
 
 # "fast": forward and first-order backward on grid_sample (fast.py);
@@ -171,7 +184,7 @@ IMPL = "fast"
 
 
 class SeparableSample(torch.autograd.Function):
-    """Autograd wrapper: texture [Bt,C,H,W], uv [Bt,M,2] -> [Bt,C,M]."""
+    """Autograd wrapper: texture [Bt,C,H,W], uv [B,M,2] -> [B,C,M], Bt = B or 1."""
 
     @staticmethod
     def forward(ctx, texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float) -> Tensor:
@@ -208,7 +221,9 @@ class SeparableSample(torch.autograd.Function):
 
 
 def separable_sample(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float = 0.0) -> Tensor:
-    """Sample one level in the flat layout: texture [Bt,C,H,W], uv [Bt,M,2] -> [Bt,C,M].
+    """Sample one level in the flat layout: texture [Bt,C,H,W], uv [B,M,2] -> [B,C,M].
+
+    Bt is B, or 1 for one texture shared by the B rows of points.
 
     No input checks: callers (``difftex.sample`` and the mip filters) have
     validated shapes, dtypes and modes already.

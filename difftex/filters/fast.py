@@ -86,7 +86,10 @@ def _fold(u: Tensor, mode: str) -> Tensor:
 
 
 def fast_forward(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float) -> Tensor:
-    """texture [Bt,C,H,W], uv [Bt,M,2] -> [Bt,C,M], differentiable once by autograd."""
+    """texture [Bt,C,H,W], uv [B,M,2] -> [B,C,M] (Bt = B or 1), differentiable once by autograd."""
+    B = uv.shape[0]
+    if texture.shape[0] != B:
+        texture = texture.expand(B, -1, -1, -1)  # a view: grid_sample reads one texture for all
     Bt, C, H, W = texture.shape
     reach = _REACH[kind]
     pu = 0 if wrap_u == "clamp" else reach
@@ -108,13 +111,23 @@ def fast_forward(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: st
     scale = uv.new_tensor([2 * W / (W + 2 * pu), 2 * H / (H + 2 * pv)])
     shift = uv.new_tensor([2 * pu / (W + 2 * pu) - 1, 2 * pv / (H + 2 * pv) - 1])
     grid = torch.addcmul(shift, folded, scale)
-    # grid_sample's CPU kernel splits work over output rows and vectorises
-    # along a row: lay the M points out as rows of _ROW points.
+    # grid_sample's CPU kernel vectorises along an output row and splits
+    # work over the batch only: lay the M points out as rows of _ROW points,
+    # and on CPU give one texture's rows to as many batch entries (views of
+    # the same texture, no copy) as there are threads.
     M = grid.shape[1]
     rows = -(-M // _ROW)
+    split = 1
+    if Bt == 1 and not grid.is_cuda:
+        split = max(1, min(torch.get_num_threads(), rows))
+        rows = -(-rows // split) * split
     if rows * _ROW != M:
         grid = F.pad(grid, (0, 0, 0, rows * _ROW - M))
-    out = F.grid_sample(tex, grid.view(Bt, rows, _ROW, 2), mode=_GS_MODE[kind], padding_mode="border",
-                        align_corners=False)
+    if split > 1:
+        tex = tex.expand(split, -1, -1, -1)
+    out = F.grid_sample(tex, grid.view(Bt * split, rows // split, _ROW, 2), mode=_GS_MODE[kind],
+                        padding_mode="border", align_corners=False)
+    if split > 1:
+        out = out.transpose(0, 1)  # [C, split, rows / split, _ROW]
     out = out.reshape(Bt, C, rows * _ROW)[:, :, :M]
     return out if bad is None else torch.where(bad.unsqueeze(1), float("nan"), out)
