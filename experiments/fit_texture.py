@@ -2,8 +2,8 @@
 
 Like nvdiffrast's earth sample: target images are rendered from the true
 texture with the most accurate filter (EWA) over random views at a wide
-range of distances (2 to 16 units: the 1024x1024 texture is minified about
-5x to 100x at the default 128x128) and angles; the fitted texture starts
+range of distances (2 to 16 units: at the default 128x128 the median
+footprint of a view spans 3 to 39 texels of the 1024x1024 texture) and angles; the fitted texture starts
 constant grey and Adam updates it so that renders with ``--filter`` match
 the targets. Rasterization is done once, since only the texture changes.
 
