@@ -23,7 +23,8 @@ The special cases fall out of the formula: a magnified point (``major' <=
 1``) gets one tap at level 0, i.e. bilinear on level 0; a round footprint
 (``N_a <= 1 + tolerance``) gets one tap, i.e. trilinear at ``log2 major``;
 a long one gets just enough taps. With the default tolerance 0.25 a count
-of 2-4 is kept and 5-16 drop to 4-13 (measured: within 0.5 dB of
+of 2-4 is kept and 5-16 drop to 4-13, except where the footprint is
+longer than ``max_aniso`` allows, which keeps all ``max_aniso`` taps (measured: within 0.5 dB of
 anisotropic 16 on the grazing-plane, sphere and spot scenes; a ratio just
 over 1 is *not* cheapened to one tap, because the anisotropic filter's two
 taps one level finer are markedly sharper and 3-5 dB more accurate on
@@ -64,8 +65,13 @@ def auto_tap_count(ell: Ellipse, fp: Footprint, lod_bias: Tensor | float, max_an
         # The count the anisotropic filter would take (with the one-texel
         # floor), capped first, so the level differs from its by at most
         # log2(1 + tolerance); clamped before the cast (no int overflow).
-        full = torch.ceil(torch.exp2(x.clamp(max=_MAX_LOG2)) - _RATIO_TOL).clamp_(max=top)
+        ratio = torch.exp2(x.clamp(max=_MAX_LOG2))
+        full = torch.ceil(ratio - _RATIO_TOL).clamp_(max=top)
         n = torch.ceil(full / (1.0 + tolerance) - _RATIO_TOL)
+        # Past max_aniso the anisotropic taps are already wider than the
+        # footprint's minor axis; fewer would blur a grazing view twice over
+        # (2-3 dB at 5 degrees), so there auto keeps all of them.
+        n = torch.where(ratio > top, full, n)
         n = torch.nan_to_num(n, nan=1.0).clamp_(1.0, top).long()
     return torch.minimum(n, cap)
 
