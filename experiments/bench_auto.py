@@ -48,17 +48,21 @@ NOTES = """
 ## How auto chooses (difftex/filters/auto.py)
 
 Per pixel, with the footprint's axes from `difftex.lod.ellipse` (level-0 texels, times `2^lod_bias`):
-`N_a = min(ceil(major / max(minor, 1)), max_aniso)` and `N = ceil(N_a / (1 + tolerance))` trilinear taps,
-run through the anisotropic filter's own code (`anisotropic_points(..., taps=N)`). Magnified pixels get one
+`N_a = min(ceil(major / max(minor, 1)), max_aniso)` and `N = ceil(N_a / (1 + tolerance))` trilinear taps
+(`N = N_a` where the axis ratio exceeds max_aniso: those taps are already wider than the minor axis), run through the anisotropic filter's own code (`anisotropic_points(..., taps=N)`). Magnified pixels get one
 tap at level 0 (bilinear), round footprints one tap (trilinear), long ones 2-16. `tolerance` (default 0.25)
 is how much wider (as a fraction) a tap's prefilter may be than anisotropic's; with 0 auto equals anisotropic
 wherever the minor axis is at least a texel.
 
 ## Findings
 
-* Within 0.5 dB of anisotropic 16 on every scene above (worst -0.41 dB, grazing plane at pitch 20), never
-  more taps; tap savings are 10-13 % on the grazing plane at pitches 10-20 and 0-3 % elsewhere. Forward
+* Within 0.5 dB of anisotropic 16 on every scene above (worst -0.25 dB, grazing plane at pitch 20), never
+  more taps; tap savings are 7-8 % on the grazing plane at pitches 10-20 and 0-3 % elsewhere. Forward
   times follow the taps but the differences are within this machine's noise except on the grazing plane.
+  (Before footprints past max_aniso kept all their taps: worst -0.41 dB, savings 10-13 %.)
+* Not on every scene of experiments/speed_vs_accuracy.py: on the closed-form checker plane at 5 degrees
+  auto is 2.1 dB under anisotropic 16, and on the magnified sphere 5 dB under, where auto reads plain
+  bilinear and anisotropic's extra level-0 taps act as supersampling inside the pixel.
 * Making nearly-round footprints (axis ratio 1-1.25) one trilinear tap, as a first version did, costs
   3-5 dB on spot's texture: anisotropic's two taps there sit a full level finer than trilinear's one, and
   trilinear's level (box pyramid + bilinear) is already blurrier than the pixel's box footprint. So the
