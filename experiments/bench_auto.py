@@ -59,7 +59,7 @@ wherever the minor axis is at least a texel.
 * Within 0.5 dB of anisotropic 16 on every scene above (worst -0.25 dB, grazing plane at pitch 20), never
   more taps; tap savings are 7-8 % on the grazing plane at pitches 10-20 and 0-3 % elsewhere. Forward
   times follow the taps but the differences are within this machine's noise except on the grazing plane.
-  (Before footprints past max_aniso kept all their taps: worst -0.41 dB, savings 10-13 %.)
+  (Before that max_aniso rule: worst -0.41 dB, savings 10-13 %.)
 * Not on every scene of experiments/speed_vs_accuracy.py: on the closed-form checker plane at 5 degrees
   auto is 2.1 dB under anisotropic 16, and on the magnified sphere 5 dB under, where auto reads plain
   bilinear and anisotropic's extra level-0 taps act as supersampling inside the pixel.
