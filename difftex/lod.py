@@ -266,7 +266,7 @@ def levels_needed(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Te
     """
     from ._checks import broadcast_batch, check_float, check_same
     from .mipmap import level_count
-    from .sample import DEFAULT_TOLERANCE, FILTERS, MIP_FILTERS, _check_max_aniso, _check_tolerance
+    from .sample import DEFAULT_TOLERANCE, FILTERS, MIP_FILTERS, _check_number
     from .filters.anisotropic import tap_count
     from .filters.auto import auto_tap_count
     check_float("uv_dx", uv_dx, 4, last=2, shape_doc="[B, Ho, Wo, 2]")
@@ -277,8 +277,8 @@ def levels_needed(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Te
                          f"got {tuple(uv_dy.shape)}")
     if not isinstance(filter, str) or filter not in FILTERS:
         raise ValueError(f"filter: unknown filter {filter!r}; expected one of {FILTERS}")
-    max_aniso = _check_max_aniso(max_aniso)
-    tolerance = _check_tolerance(DEFAULT_TOLERANCE if tolerance is None else tolerance)
+    max_aniso = _check_number("max_aniso", max_aniso, 1)
+    tolerance = _check_number("tolerance", DEFAULT_TOLERANCE if tolerance is None else tolerance, 0)
     H, W, full = _size_and_levels(texture_size)
     if full is None:
         full = level_count(H, W)

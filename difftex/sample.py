@@ -110,8 +110,8 @@ def sample(
     wrap_u, wrap_v = parse_wrap(wrap)
     if not isinstance(filter, str) or filter not in FILTERS:
         raise ValueError(f"filter: unknown filter {filter!r}; expected one of {FILTERS}")
-    max_aniso = _check_max_aniso(max_aniso)
-    tolerance = _check_tolerance(tolerance)
+    max_aniso = _check_number("max_aniso", max_aniso, 1)
+    tolerance = _check_number("tolerance", tolerance, 0)
     _, Ho, Wo, _ = uv.shape
     derivs = _check_derivatives(filter, uv, texture, uv_dx, uv_dy)
     bias = _check_bias(lod_bias, uv, texture)
@@ -132,20 +132,13 @@ def sample(
     return out.view(B, C, Ho, Wo)
 
 
-def _check_max_aniso(max_aniso: object) -> float:
-    if isinstance(max_aniso, bool) or not isinstance(max_aniso, numbers.Real):
-        raise TypeError(f"max_aniso: expected a number >= 1, got {type(max_aniso).__name__}")
-    if not (math.isfinite(max_aniso) and max_aniso >= 1):
-        raise ValueError(f"max_aniso: expected a finite number >= 1, got {max_aniso!r}")
-    return float(max_aniso)
-
-
-def _check_tolerance(tolerance: object) -> float:
-    if isinstance(tolerance, bool) or not isinstance(tolerance, numbers.Real):
-        raise TypeError(f"tolerance: expected a number >= 0, got {type(tolerance).__name__}")
-    if not (math.isfinite(tolerance) and tolerance >= 0):
-        raise ValueError(f"tolerance: expected a finite number >= 0, got {tolerance!r}")
-    return float(tolerance)
+def _check_number(name: str, value: object, minimum: float) -> float:
+    """A finite real >= minimum, as float; TypeError / ValueError naming ``name`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name}: expected a number >= {minimum:g}, got {type(value).__name__}")
+    if not (math.isfinite(value) and value >= minimum):
+        raise ValueError(f"{name}: expected a finite number >= {minimum:g}, got {value!r}")
+    return float(value)
 
 
 def _check_derivatives(filter: str, uv: Tensor, texture: Tensor, uv_dx: object, uv_dy: object) -> list[Tensor]:

@@ -366,7 +366,7 @@ def test_gradcheck_nearest_mip_and_double_backward_trilinear():
     assert torch.autograd.gradgradcheck(fn, (tex, uv, dx, bias))
 
 
-@pytest.mark.parametrize("filter", MIP)
+@pytest.mark.parametrize("filter", MIP + ("auto",))
 def test_degenerate_derivatives_give_finite_values_and_zero_gradients(filter):
     g = _gen(11)
     tex = torch.rand(1, 3, 32, 16, generator=g, requires_grad=True)
