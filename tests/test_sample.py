@@ -300,3 +300,29 @@ def test_many_points_split_over_threads(filt, threads, monkeypatch):
     ref = _grads(gs, tex[:1], uv)
     for a, b in zip(got, ref):
         torch.testing.assert_close(a, b, atol=1e-9, rtol=0)
+
+
+@pytest.mark.parametrize("filt", ["nearest", "bilinear", "bicubic"])
+def test_fast_path_large_texture_few_points(filt, monkeypatch):
+    # A texture with more texels than points: the fast path reads it unpadded
+    # and sends the points whose taps cross an edge to the gather reference.
+    # uv sits on and near the edges of several periods to hit that split.
+    g = torch.Generator().manual_seed(14)
+    tex = torch.rand(1, 2, 23, 40, generator=g, dtype=torch.float64)
+    # (Not on exact texel boundaries: nearest's round-half-to-even tie there
+    # depends on which period the coordinate is expressed in.)
+    edge = torch.tensor([0.05, 0.2, 0.6, 1.6, 20.3, 40 - 1.6, 40 - 0.6, 40 - 0.2]) / 40
+    u = (edge.view(-1, 1) + torch.arange(-2, 3).view(1, -1)).flatten()[:36]
+    v = torch.rand(36, generator=g) * 4 - 1.5
+    uv = torch.stack((u.to(torch.float64), v.to(torch.float64)), -1).view(2, 3, 6, 2)
+    uv = torch.cat((uv, uv.flip(-1)), 2)  # the same edges along v
+    for wu in difftex.WRAP_MODES:
+        for wv in difftex.WRAP_MODES:
+            fn = lambda t, x: difftex.sample(t, x, filter=filt, wrap=(wu, wv), border_value=0.3)
+            results = []
+            for impl in ("fast", "reference"):
+                monkeypatch.setattr(basic, "IMPL", impl)
+                torch.manual_seed(0)
+                results.append(_grads(fn, tex, uv))
+            for a, b in zip(*results):
+                torch.testing.assert_close(a, b, atol=1e-9, rtol=0, msg=f"{filt} {wu}/{wv}")

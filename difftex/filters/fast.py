@@ -85,16 +85,57 @@ def _fold(u: Tensor, mode: str) -> Tensor:
     return u
 
 
+# Along an axis, taps stay inside [0, n) while the texel coordinate x
+# (centre of texel j at j) lies in [lo, n + hi): nearest rounds, linear reads
+# floor(x) and floor(x) + 1, cubic floor(x) - 1 .. floor(x) + 2.
+_INSIDE = {"nearest": (-0.5, -0.5), "linear": (0.0, -1.0), "cubic": (1.0, -2.0)}
+
+
+def _crosses_edge(folded: Tensor, W: int, H: int, kind: str, wrap_u: str, wrap_v: str) -> Tensor:
+    """[B, M] bool: points with a tap outside the texture on an axis that does not clamp."""
+    lo, hi = _INSIDE[kind]
+    out = torch.zeros(folded.shape[:-1], dtype=torch.bool, device=folded.device)
+    for axis, n, mode in ((0, W, wrap_u), (1, H, wrap_v)):
+        if mode != "clamp":
+            x = folded[..., axis] * n - 0.5
+            out |= (x < lo) | (x >= n + hi)
+    return out
+
+
+def _grid_sample_rows(tex: Tensor, grid: Tensor, kind: str) -> Tensor:
+    """tex [B,C,h,w], grid [B,M,2] in [-1, 1] -> [B,C,M], clamping at the edges."""
+    Bt, C = tex.shape[:2]
+    # grid_sample's CPU kernel vectorises along an output row and splits
+    # work over the batch only: lay the M points out as rows of _ROW points,
+    # and on CPU give one texture's rows to as many batch entries (views of
+    # the same texture, no copy) as there are threads - unless the texture
+    # needs a gradient and is larger than the point set: grid_sample's
+    # backward would zero and sum one texture-sized gradient per entry.
+    M = grid.shape[1]
+    rows = -(-M // _ROW)
+    split = 1
+    h, w = tex.shape[-2:]
+    if Bt == 1 and not grid.is_cuda and (not tex.requires_grad or M >= h * w):
+        split = max(1, min(torch.get_num_threads(), rows))
+        rows = -(-rows // split) * split
+    if rows * _ROW != M:
+        grid = F.pad(grid, (0, 0, 0, rows * _ROW - M))
+    if split > 1:
+        tex = tex.expand(split, -1, -1, -1)
+    out = F.grid_sample(tex, grid.view(Bt * split, rows // split, _ROW, 2), mode=_GS_MODE[kind],
+                        padding_mode="border", align_corners=False)
+    if split > 1:
+        out = out.transpose(0, 1)  # [C, split, rows / split, _ROW]
+    return out.reshape(Bt, C, rows * _ROW)[:, :, :M]
+
+
 def fast_forward(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float) -> Tensor:
     """texture [Bt,C,H,W], uv [B,M,2] -> [B,C,M] (Bt = B or 1), differentiable once by autograd."""
-    B = uv.shape[0]
-    if texture.shape[0] != B:
-        texture = texture.expand(B, -1, -1, -1)  # a view: grid_sample reads one texture for all
-    Bt, C, H, W = texture.shape
-    reach = _REACH[kind]
-    pu = 0 if wrap_u == "clamp" else reach
-    pv = 0 if wrap_v == "clamp" else reach
-    tex = _pad(texture, pu, pv, wrap_u, wrap_v, border)
+    from .basic import separable_forward  # the reference; basic imports this module
+
+    B, M = uv.shape[:2]
+    shared = texture.shape[0] == 1
+    C, H, W = texture.shape[1:]
     # A NaN / inf uv would index garbage inside the kernel: sample a safe
     # point instead and put the NaN back afterwards, so the pixel is NaN and
     # passes no gradient to the texture. (On CPU the check is free to skip.)
@@ -107,27 +148,27 @@ def fast_forward(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: st
         folded = _fold(uv, wrap_u)
     else:
         folded = torch.stack((_fold(uv[..., 0], wrap_u), _fold(uv[..., 1], wrap_v)), -1)
-    # uv of the padded texture, as grid_sample's [-1, 1] coordinates.
+    edge = None
+    if shared and (wrap_u, wrap_v) != ("clamp", "clamp") and H * W > B * M:
+        # Padding would copy (and in backward fold back) a texture larger
+        # than the point set: read the texture as it is, and give the few
+        # points whose taps cross an edge to the gather reference.
+        pu = pv = 0
+        tex = texture
+        edge = _crosses_edge(folded, W, H, kind, wrap_u, wrap_v)
+    else:
+        reach = _REACH[kind]
+        pu = 0 if wrap_u == "clamp" else reach
+        pv = 0 if wrap_v == "clamp" else reach
+        tex = _pad(texture, pu, pv, wrap_u, wrap_v, border)
+    if tex.shape[0] != B:
+        tex = tex.expand(B, -1, -1, -1)  # a view: grid_sample reads one texture for all
+    # uv of the (padded) texture, as grid_sample's [-1, 1] coordinates.
     scale = uv.new_tensor([2 * W / (W + 2 * pu), 2 * H / (H + 2 * pv)])
     shift = uv.new_tensor([2 * pu / (W + 2 * pu) - 1, 2 * pv / (H + 2 * pv) - 1])
-    grid = torch.addcmul(shift, folded, scale)
-    # grid_sample's CPU kernel vectorises along an output row and splits
-    # work over the batch only: lay the M points out as rows of _ROW points,
-    # and on CPU give one texture's rows to as many batch entries (views of
-    # the same texture, no copy) as there are threads.
-    M = grid.shape[1]
-    rows = -(-M // _ROW)
-    split = 1
-    if Bt == 1 and not grid.is_cuda:
-        split = max(1, min(torch.get_num_threads(), rows))
-        rows = -(-rows // split) * split
-    if rows * _ROW != M:
-        grid = F.pad(grid, (0, 0, 0, rows * _ROW - M))
-    if split > 1:
-        tex = tex.expand(split, -1, -1, -1)
-    out = F.grid_sample(tex, grid.view(Bt * split, rows // split, _ROW, 2), mode=_GS_MODE[kind],
-                        padding_mode="border", align_corners=False)
-    if split > 1:
-        out = out.transpose(0, 1)  # [C, split, rows / split, _ROW]
-    out = out.reshape(Bt, C, rows * _ROW)[:, :, :M]
+    out = _grid_sample_rows(tex, torch.addcmul(shift, folded, scale), kind)
+    if edge is not None and bool(edge.any()):
+        b, m = edge.nonzero(as_tuple=True)
+        vals = separable_forward(texture, folded[b, m].unsqueeze(0), kind, wrap_u, wrap_v, border)
+        out = out.transpose(1, 2).index_put((b, m), vals[0].t()).transpose(1, 2)
     return out if bad is None else torch.where(bad.unsqueeze(1), float("nan"), out)
