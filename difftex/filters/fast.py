@@ -138,12 +138,13 @@ def fast_forward(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: st
     C, H, W = texture.shape[1:]
     # A NaN / inf uv would index garbage inside the kernel: sample a safe
     # point instead and put the NaN back afterwards, so the pixel is NaN and
-    # passes no gradient to the texture. (On CPU the check is free to skip.)
-    bad = ~torch.isfinite(uv).all(-1)
-    if uv.is_cuda or bool(bad.any()):
+    # passes no gradient to the texture. On CPU one sum says whether any
+    # point is bad (or so large that the sum overflows) without a per-point
+    # pass; on CUDA the masks are cheaper than that sync.
+    bad = None
+    if uv.is_cuda or not bool(torch.isfinite(uv.detach().sum())):
+        bad = ~torch.isfinite(uv).all(-1)
         uv = torch.where(bad.unsqueeze(-1), 0.0, uv)
-    else:
-        bad = None
     if wrap_u == wrap_v:
         folded = _fold(uv, wrap_u)
     else:
