@@ -383,6 +383,11 @@ def test_degenerate_derivatives_give_finite_values_and_zero_gradients(filter):
     grads = [torch.zeros_like(x) if gr is None else gr for x, gr in zip((tex, uv, dx, dy, bias), grads)]
     assert all(torch.isfinite(gr).all() for gr in grads)
     assert (grads[2][0, 0, :4] == 0).all() and (grads[3][0, 0, :4] == 0).all()
+    # Absurd biases too (NaN reads level 0, -inf / 1e4 clamp): finite, and
+    # EWA's work stays bounded for the 1e30 footprints read at level 0.
+    for b in (float("nan"), float("inf"), -float("inf"), 1e4):
+        out = difftex.sample(tex, uv, filter=filter, uv_dx=dx, uv_dy=dy, lod_bias=b)
+        assert torch.isfinite(out).all(), b
 
 
 @pytest.mark.parametrize("filter", MIP)

@@ -22,7 +22,11 @@ Where the level is clamped at the coarsest level and the ellipse is still
 larger than a couple of texels there, it is shrunk (shape kept) to a minor
 axis of 2 texels: the texture is already averaged to a few texels, and this
 bounds the work. A negative ``lod_bias`` enlarges the ellipse in texels of
-the chosen level, and the work with it, by ``4^-lod_bias``.
+the chosen level, and the work with it, by ``4^-lod_bias``; on every other
+level the minor axis is capped at the level's larger side (an ellipse wider
+than the whole level already averages all of it), so a huge footprint read
+at a low level (bias -inf or NaN, which reads level 0) costs bounded work
+instead of overflowing.
 """
 from __future__ import annotations
 
@@ -111,14 +115,13 @@ def _ewa_level(lev: Tensor, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Ten
     """EWA on one level [1, C, Hk, Wk] at points uv [m, 2] with level-0 ellipses; [C, m]."""
     _, C, H, W = lev.shape
     kx, ky = W / full_w, H / full_h
-    s = scale
-    if coarsest:
-        # Beyond the coarsest level the ellipse is shrunk to a minor axis of
-        # _MAX_MINOR texels (module docstring).
-        minor_k = minor * max(kx, ky)
-        pos = minor_k > 0
-        s = torch.where(pos, torch.minimum(scale, _MAX_MINOR / torch.where(pos, minor_k, torch.ones_like(minor_k))),
-                        scale)
+    # Beyond the coarsest level the ellipse is shrunk to a minor axis of
+    # _MAX_MINOR texels; on other levels to the level's larger side (module
+    # docstring), which only a bias far below the footprint's level reaches.
+    cap = _MAX_MINOR if coarsest else max(_MAX_MINOR, float(max(H, W)))
+    minor_k = minor * max(kx, ky)
+    pos = minor_k > 0
+    s = torch.where(pos, torch.minimum(scale, cap / torch.where(pos, minor_k, torch.ones_like(minor_k))), scale)
     # Ellipse in level-k texels (the footprint was divided by its scale).
     s2 = s * s
     sxx = sigma[:, 0] * (s2 * kx * kx) + 1
