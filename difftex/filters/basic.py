@@ -11,9 +11,10 @@ saving the gathered texels: it keeps memory at the size of the inputs, and
 because it is written in differentiable torch ops it can itself be
 differentiated (double backward), which grid_sample cannot.
 
-Flat layout used here: texture ``[Bt, C, H, W]``, uv ``[Bt, M, 2]`` (one
-row of M sample points per texture), output ``[Bt, C, M]``;
-``difftex.sample`` does the reshaping and broadcasting around it.
+Flat layout used here: texture ``[Bt, C, H, W]``, uv ``[B, M, 2]`` (one
+row of M sample points per texture, or B rows sharing one texture when
+Bt = 1), output ``[B, C, M]``; ``difftex.sample`` does the reshaping and
+broadcasting around it.
 """
 from __future__ import annotations
 
@@ -22,8 +23,6 @@ from torch import Tensor
 
 from ..wrap import floor_index, wrap_index
 from .fast import fast_forward
-
-KINDS = ("nearest", "linear", "cubic")
 
 # grid_sample's bicubic uses the Keys cubic convolution with a = -0.75.
 _CUBIC_A = -0.75
