@@ -16,9 +16,9 @@ one axis by axis:
 
 The pyramid is built in autograd-tracked ops, so the gradient of anything
 read from any level reaches the base texture through the exact adjoint
-(transpose) of these filters; the even x even step, the common one, has a
-hand-written adjoint (spread each gradient 1/4 to the 2 x 2 block), itself
-differentiable.
+(transpose) of these filters. A run of even x even steps, the common case,
+is one autograd node with a hand-written adjoint (spread each gradient 1/4
+to its 2 x 2 block, folded coarse to fine), itself differentiable.
 """
 from __future__ import annotations
 
@@ -43,33 +43,51 @@ def level_size(height: int, width: int, k: int) -> tuple[int, int]:
     return -(-height // (1 << k)), -(-width // (1 << k))
 
 
-class _Box2(torch.autograd.Function):
-    """2 x 2 box average of an even x even level; the backward is its transpose."""
+def _box2(x: Tensor) -> Tensor:
+    """2 x 2 box average of an even x even level."""
+    # Two strided passes beat F.avg_pool2d by ~5x on CPU (measured, 1024^2).
+    y = x[..., 0::2] + x[..., 1::2]
+    return (y[..., 0::2, :] + y[..., 1::2, :]) * 0.25
+
+
+def _spread_add(fine: Tensor | None, coarse: Tensor) -> Tensor:
+    """``fine`` plus the transpose of ``_box2`` applied to ``coarse`` (each value / 4 over its 2 x 2 block)."""
+    B, C, h, w = coarse.shape
+    if fine is None:
+        # Nearest 2x upsampling: 1.7x faster on CPU than a broadcast copy
+        # (measured, 512^2 -> 1024^2).
+        return F.interpolate(coarse * 0.25, size=(2 * h, 2 * w), mode="nearest")
+    # One broadcast add over the fine gradient: faster on CPU than nearest
+    # upsampling followed by an add, and no upsampled copy (measured).
+    return torch.add(fine.view(B, C, h, 2, w, 2), coarse.view(B, C, h, 1, w, 1), alpha=0.25).view(B, C, 2 * h, 2 * w)
+
+
+class _EvenChain(torch.autograd.Function):
+    """``n`` successive 2 x 2 box steps of an even chain, as one node.
+
+    Outputs ``(x, box(x), box(box(x)), ...)`` (``x`` as a view), so that the
+    backward receives every level's gradient at once and folds them
+    coarse to fine with one broadcast add per level: no upsampled copy of a
+    level's gradient, and no separate add for level 0's own gradient.
+    """
 
     @staticmethod
-    def forward(ctx, x: Tensor) -> Tensor:
-        # Two strided passes beat F.avg_pool2d by ~5x on CPU (measured, 1024^2).
-        y = x[..., 0::2] + x[..., 1::2]
-        return (y[..., 0::2, :] + y[..., 1::2, :]) * 0.25
+    def forward(ctx, x: Tensor, n: int) -> tuple[Tensor, ...]:
+        ctx.set_materialize_grads(False)
+        out = [x.view_as(x)]
+        for _ in range(n):
+            out.append(_box2(out[-1]))
+        return tuple(out)
 
     @staticmethod
-    def backward(ctx, g: Tensor) -> Tensor:
-        return _Box2T.apply(g)
-
-
-class _Box2T(torch.autograd.Function):
-    """Transpose of ``_Box2``: each coarse value spread, times 1/4, over its 2 x 2 block."""
-
-    @staticmethod
-    def forward(ctx, g: Tensor) -> Tensor:
-        h, w = g.shape[-2:]
-        # Nearest 2x upsampling replicates each value over its 2 x 2 block
-        # exactly; it is the fastest such kernel on CPU (measured).
-        return F.interpolate(g * 0.25, size=(2 * h, 2 * w), mode="nearest")
-
-    @staticmethod
-    def backward(ctx, gg: Tensor) -> Tensor:
-        return _Box2.apply(gg)
+    def backward(ctx, *grads: Tensor | None):
+        acc = None
+        for g in reversed(grads):
+            if acc is None:
+                acc = g
+            else:
+                acc = _spread_add(g, acc)
+        return acc, None
 
 
 @lru_cache(maxsize=256)
@@ -114,16 +132,20 @@ def _down_axis(x: Tensor, dim: int) -> Tensor:
     return (picked.unflatten(-2, (m, 3)) * w.unsqueeze(-1)).sum(-2)
 
 
-def downsample(level: Tensor) -> Tensor:
-    """The next mip level: [B, C, H, W] -> [B, C, ceil(H / 2), ceil(W / 2)].
-
-    Even sides use the 2-texel box, odd sides the area-weighted box (module
-    docstring); differentiable, with the exact adjoint as its gradient.
-    """
-    H, W = level.shape[-2:]
-    if H % 2 == 0 and W % 2 == 0:
-        return _Box2.apply(level)
-    return _down_axis(_down_axis(level, -1), -2)
+def _build(texture: Tensor, n: int) -> list[Tensor]:
+    """Levels 0 .. n-1 of ``texture``: runs of even x even steps as one ``_EvenChain``, other steps axis by axis."""
+    levels = [texture]
+    while len(levels) < n:
+        x = levels[-1]
+        H, W = x.shape[-2:]
+        steps = 0
+        while len(levels) + steps < n and H % (2 << steps) == 0 and W % (2 << steps) == 0:
+            steps += 1
+        if steps:
+            levels[-1:] = _EvenChain.apply(x, steps)
+        else:
+            levels.append(_down_axis(_down_axis(x, -1), -2))
+    return levels
 
 
 class Mipmap:
@@ -184,7 +206,9 @@ def mipmap(texture: Tensor | Sequence[Tensor] | Mipmap, *, max_levels: int | Non
             chain down to 1 x 1, ``1 + ceil(log2(max(H, W)))`` levels.
 
     Returns:
-        Mipmap whose level 0 is ``texture`` itself.
+        Mipmap whose level 0 holds ``texture``'s values (a view of it when
+        the next step is an even x even box, so that its gradient joins the
+        pyramid's adjoint in one pass).
 
     Built levels are differentiable: gradients reach the base texture through
     the exact adjoint of the downsampling. Supplied levels each receive their
@@ -209,10 +233,7 @@ def mipmap(texture: Tensor | Sequence[Tensor] | Mipmap, *, max_levels: int | Non
     n = level_count(H, W)
     if max_levels is not None:
         n = min(n, max_levels)
-    levels = [texture]
-    for _ in range(1, n):
-        levels.append(downsample(levels[-1]))
-    return Mipmap(levels)
+    return Mipmap(_build(texture, n))
 
 
 def _from_levels(levels: list[Tensor], max_levels: int | None) -> Mipmap:

@@ -58,7 +58,8 @@ def test_sizes_and_values_match_reference(hw):
         assert tuple(a.shape[-2:]) == level_size(H, W, k) == (-(-H // 2 ** k), -(-W // 2 ** k))
         torch.testing.assert_close(a, b, atol=1e-14, rtol=0)
     assert m[-1].shape[-2:] == (1, 1)
-    assert m[0] is x
+    # Level 0 is the texture (a view of it when an even chain follows).
+    assert m[0].data_ptr() == x.data_ptr() and m[0].shape == x.shape
 
 
 @pytest.mark.parametrize("hw", [(7, 5), (16, 16), (9, 4), (1, 11)])
@@ -97,6 +98,13 @@ def test_gradcheck_and_double_backward():
     y = torch.rand(1, 1, 8, 8, dtype=torch.float64, requires_grad=True)  # the hand-written even path
     assert torch.autograd.gradcheck(fn, (y,))
     assert torch.autograd.gradgradcheck(fn, (y,))
+    # Every level used, level 0 too (its gradient joins the chain's adjoint),
+    # and an even chain (12x8 -> 6x4 -> 3x2) followed by odd steps.
+    every = lambda t: tuple(2 * lev for lev in mipmap(t).levels)
+    z = torch.rand(2, 1, 12, 8, dtype=torch.float64, requires_grad=True)
+    for t in (y, z):
+        assert torch.autograd.gradcheck(every, (t,))
+        assert torch.autograd.gradgradcheck(every, (t,))
 
 
 def test_max_levels_and_batch():

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from ..wrap import floor_index, wrap_index
-from .fast import fast_forward
+from .fast import FastSample, fast_forward
 
 # grid_sample's bicubic uses the Keys cubic convolution with a = -0.75.
 _CUBIC_A = -0.75
@@ -138,8 +138,13 @@ def separable_forward(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_
 
 
 def separable_backward(texture: Tensor, uv: Tensor, grad_out: Tensor, kind: str, wrap_u: str, wrap_v: str,
-                       border: float, need_tex: bool, need_uv: bool) -> tuple[Tensor | None, Tensor | None]:
-    """Gradients w.r.t. texture and uv, in differentiable ops (double backward)."""
+                       border: float, need_tex: bool, need_uv: bool,
+                       into: Tensor | None = None) -> tuple[Tensor | None, Tensor | None]:
+    """Gradients w.r.t. texture and uv, in differentiable ops (double backward).
+
+    ``into``: optional texture-shaped buffer that the texture gradient is
+    added to in place (and returned), instead of a new one; first order only.
+    """
     Bt, C, H, W = texture.shape
     B = uv.shape[0]
     uv = _one_row(texture, uv)
@@ -149,7 +154,9 @@ def separable_backward(texture: Tensor, uv: Tensor, grad_out: Tensor, kind: str,
     grad_out = grad_out.contiguous()
     need_uv = need_uv and kind != "nearest"
     M, K = uv.shape[1], len(_OFFSETS[kind])
-    grad_flat = torch.zeros_like(flat) if need_tex else None
+    grad_flat = None
+    if need_tex:
+        grad_flat = torch.zeros_like(flat) if into is None else into.view(Bt, C, H * W)
     grad_uv = []
     for a, b in _chunks(M, C * K * K):
         taps = _Taps(texture, uv[:, a:b], kind, wrap_u, wrap_v, derivs=need_uv)
@@ -163,7 +170,8 @@ def separable_backward(texture: Tensor, uv: Tensor, grad_out: Tensor, kind: str,
                 keep = keep & taps.valid
             w = torch.where(keep, w, 0.0)
             src = (g.view(Bt, C, 1, 1, -1) * w.unsqueeze(1)).reshape(Bt, C, -1)
-            grad_flat = grad_flat.scatter_add(2, taps.idx.unsqueeze(1).expand(-1, C, -1), src)
+            index = taps.idx.unsqueeze(1).expand(-1, C, -1)
+            grad_flat = grad_flat.scatter_add(2, index, src) if into is None else grad_flat.scatter_add_(2, index, src)
         if need_uv:
             gv = (g.view(Bt, C, 1, 1, -1) * taps.read(flat, border)).sum(1)  # [Bt, K, K, m]
             gx = _contract(gv.unsqueeze(1), taps.dwx, taps.wy)[:, 0] * W
@@ -189,33 +197,26 @@ class SeparableSample(torch.autograd.Function):
     def forward(ctx, texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float) -> Tensor:
         ctx.save_for_backward(texture, uv)
         ctx.args = (kind, wrap_u, wrap_v, border)
-        ctx.graph = None
+        ctx.fast = None
         if IMPL == "reference":
             return separable_forward(texture, uv, kind, wrap_u, wrap_v, border)
-        # Keep the fast path's own small graph (it saves the padded texture
-        # and the grid) for a first-order backward in grid_sample's kernel.
-        with torch.enable_grad():
-            t = texture.detach().requires_grad_(ctx.needs_input_grad[0])
-            u = uv.detach().requires_grad_(ctx.needs_input_grad[1])
-            out = fast_forward(t, u, kind, wrap_u, wrap_v, border)
-        if out.requires_grad:
-            ctx.graph = (t, u, out)
-        return out.detach()
+        # The fast path keeps what its hand-written backward needs (the
+        # padded texture, the grid); no graph.
+        ctx.fast = FastSample(texture, uv, kind, wrap_u, wrap_v, border, tex_grad=ctx.needs_input_grad[0])
+        return ctx.fast.out
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):
         texture, uv = ctx.saved_tensors
         kind, wrap_u, wrap_v, border = ctx.args
-        if ctx.graph is not None and not torch.is_grad_enabled():
-            t, u, out = ctx.graph
-            wanted = [x for x in (t, u) if x.requires_grad]
-            grads = iter(torch.autograd.grad(out, wanted, grad_out, retain_graph=True))
-            grad_tex = next(grads) if t.requires_grad else None
-            grad_uv = next(grads) if u.requires_grad else None
+        need_tex, need_uv = ctx.needs_input_grad[:2]
+        if ctx.fast is not None and not torch.is_grad_enabled():
+            grad_tex, grad_uv = ctx.fast.backward(grad_out, need_tex, need_uv)
         else:  # double backward (create_graph=True) or the reference path
-            grad_tex, grad_uv = separable_backward(
-                texture, uv, grad_out, kind, wrap_u, wrap_v, border,
-                ctx.needs_input_grad[0], ctx.needs_input_grad[1])
+            grad_tex, grad_uv = separable_backward(texture, uv, grad_out, kind, wrap_u, wrap_v, border,
+                                                   need_tex, need_uv)
+        if need_uv and grad_uv is None:  # nearest: piecewise constant in uv
+            grad_uv = torch.zeros_like(uv)
         return grad_tex, grad_uv, None, None, None, None
 
 

@@ -14,8 +14,12 @@ reduces every wrap mode to what it has:
   texture, and grid_sample's "border" padding does the clamping.
 
 The values are those of ``basic.separable_forward`` (the tested reference)
-to rounding. ``SeparableSample`` in ``basic.py`` runs this path inside its
-forward and backward; double backward falls back to the reference backward.
+to rounding. The first-order backward is written by hand around
+``aten::grid_sampler_2d_backward`` (plus the adjoints of the padding and the
+folding): no autograd graph is recorded in the forward and no re-entrant
+``autograd.grad`` runs in the backward, which is most of a small level's
+cost. ``SeparableSample`` in ``basic.py`` runs this path; double backward
+falls back to the reference backward.
 """
 from __future__ import annotations
 
@@ -43,6 +47,15 @@ def _fpad_mode(mode: str, p: int, n: int) -> str | None:
     return _FPAD[mode] if (mode == "border" or p <= n) else None
 
 
+def _pad_index(mode: str, p: int, n: int, device: torch.device) -> Tensor:
+    """Source texel of each of the n + 2p positions of an axis padded by ``p`` (repeat / mirror, as wrap.py maps them)."""
+    i = torch.arange(-p, n + p, device=device)
+    if mode == "repeat":
+        return i % n
+    i = i % (2 * n)  # mirror: period 2n, reflected about the texture's edges
+    return torch.where(i >= n, 2 * n - 1 - i, i)
+
+
 def _pad_axis(tex: Tensor, dim: int, p: int, mode: str, border: float) -> Tensor:
     """Pad ``p`` texels on both ends of ``dim`` (2 or 3) with what ``mode`` reads there."""
     n = tex.shape[dim]
@@ -52,17 +65,20 @@ def _pad_axis(tex: Tensor, dim: int, p: int, mode: str, border: float) -> Tensor
     if fmode is not None:
         return F.pad(tex, (p, p, 0, 0) if dim == 3 else (0, 0, p, p), mode=fmode,
                      **({"value": border} if fmode == "constant" else {}))
-    # Indices -p..-1 and n..n+p-1, mapped the way wrap.wrap_index maps them.
-    before = torch.arange(-p, 0, device=tex.device)
-    after = torch.arange(n, n + p, device=tex.device)
-    if mode == "repeat":
-        before, after = before % n, after % n
-    else:  # mirror: period 2n, reflected about the texture's edges
-        before, after = before % (2 * n), after % (2 * n)
-        before = torch.where(before >= n, 2 * n - 1 - before, before)
-        after = torch.where(after >= n, 2 * n - 1 - after, after)
-    idx = torch.cat((before, torch.arange(n, device=tex.device), after))
-    return tex.index_select(dim, idx)
+    return tex.index_select(dim, _pad_index(mode, p, n, tex.device))
+
+
+def _unpad_axis(g: Tensor, dim: int, p: int, mode: str) -> Tensor:
+    """Adjoint of ``_pad_axis``: fold the gradient of the pad back onto the texels it copied."""
+    if mode == "clamp" or p == 0:
+        return g
+    n = g.shape[dim] - 2 * p
+    core = g.narrow(dim, p, n)
+    if mode == "border":  # the constant has no texels
+        return core
+    idx = _pad_index(mode, p, n, g.device)
+    strips = torch.cat((g.narrow(dim, 0, p), g.narrow(dim, n + p, p)), dim)
+    return core.clone().index_add_(dim, torch.cat((idx[:p], idx[n + p:])), strips)
 
 
 def _pad(tex: Tensor, pu: int, pv: int, wrap_u: str, wrap_v: str, border: float) -> Tensor:
@@ -102,74 +118,171 @@ def _crosses_edge(folded: Tensor, W: int, H: int, kind: str, wrap_u: str, wrap_v
     return out
 
 
-def _grid_sample_rows(tex: Tensor, grid: Tensor, kind: str) -> Tensor:
-    """tex [B,C,h,w], grid [B,M,2] in [-1, 1] -> [B,C,M], clamping at the edges."""
-    Bt, C = tex.shape[:2]
-    # grid_sample's CPU kernel vectorises along an output row and splits
-    # work over the batch only: lay the M points out as rows of _ROW points,
-    # and on CPU give one texture's rows to as many batch entries (views of
-    # the same texture, no copy) as there are threads - unless the texture
-    # needs a gradient and is larger than the point set: grid_sample's
-    # backward would zero and sum one texture-sized gradient per entry.
-    M = grid.shape[1]
-    rows = -(-M // _ROW)
-    split = 1
-    h, w = tex.shape[-2:]
-    if Bt == 1 and not grid.is_cuda and (not tex.requires_grad or M >= h * w):
-        split = max(1, min(torch.get_num_threads(), rows))
-        rows = -(-rows // split) * split
-    if rows * _ROW != M:
-        grid = F.pad(grid, (0, 0, 0, rows * _ROW - M))
-    if split > 1:
-        tex = tex.expand(split, -1, -1, -1)
-    out = F.grid_sample(tex, grid.view(Bt * split, rows // split, _ROW, 2), mode=_GS_MODE[kind],
-                        padding_mode="border", align_corners=False)
-    if split > 1:
-        out = out.transpose(0, 1)  # [C, split, rows / split, _ROW]
-    return out.reshape(Bt, C, rows * _ROW)[:, :, :M]
+_GS_ENUM = {"linear": 0, "nearest": 1, "cubic": 2}  # aten's GridSamplerInterpolation
+
+
+def _fold_slope(u: Tensor, mode: str) -> Tensor | None:
+    """d fold(u) / du: +-1 for mirror, None (1) for the other modes."""
+    if mode != "mirror":
+        return None
+    h = u * 0.5
+    return torch.where(h - torch.floor(h) < 0.5, 1.0, -1.0).to(u.dtype)
+
+
+class _Rows:
+    """grid_sample over M points laid out as rows; ``backward`` is its adjoint.
+
+    tex [Bt,C,h,w], grid [B,M,2] in [-1, 1] (B = Bt, or a multiple of 1
+    shared texture) -> [B,C,M], clamping at the edges. grid_sample's CPU
+    kernel vectorises along an output row and splits work over the batch
+    only: the points go in rows of ``_ROW``, and on CPU one texture's rows go
+    to as many batch entries (views of the same texture, no copy) as there
+    are threads - unless the texture needs a gradient and is larger than the
+    point set: the backward would zero and sum one texture-sized gradient
+    per entry.
+    """
+
+    def __init__(self, tex: Tensor, grid: Tensor, kind: str, tex_grad: bool):
+        B, M = grid.shape[:2]
+        rows = -(-M // _ROW)
+        split = 1
+        h, w = tex.shape[-2:]
+        if B == 1 and not grid.is_cuda and (not tex_grad or M >= h * w):
+            split = max(1, min(torch.get_num_threads(), rows))
+            rows = -(-rows // split) * split
+        if rows * _ROW != M:
+            grid = F.pad(grid, (0, 0, 0, rows * _ROW - M))
+        self.kind, self.B, self.M, self.rows, self.split = kind, B, M, rows, split
+        self.tex = tex.expand(B * split, -1, -1, -1)  # a view: grid_sample reads one texture for all
+        self.grid = grid.view(B * split, rows // split, _ROW, 2)
+
+    def forward(self) -> Tensor:
+        out = F.grid_sample(self.tex, self.grid, mode=_GS_MODE[self.kind], padding_mode="border",
+                            align_corners=False)
+        if self.split > 1:
+            out = out.transpose(0, 1)  # [C, split, rows / split, _ROW]
+        return out.reshape(self.B, -1, self.rows * _ROW)[:, :, :self.M]
+
+    def backward(self, g: Tensor, need_tex: bool, need_grid: bool) -> tuple[Tensor | None, Tensor | None]:
+        """g [B,C,M] -> (gradient of the texture [1 or B, C, h, w], of the grid [B, M, 2])."""
+        B, C = g.shape[:2]
+        if self.rows * _ROW != self.M:
+            g = F.pad(g, (0, self.rows * _ROW - self.M))
+        if self.split > 1:
+            g = g.view(C, self.split, self.rows // self.split, _ROW).transpose(0, 1)
+        g = g.reshape(B * self.split, C, self.rows // self.split, _ROW)
+        gt, gg = torch.ops.aten.grid_sampler_2d_backward(
+            g, self.tex, self.grid, _GS_ENUM[self.kind], 1, False, [need_tex, need_grid])
+        if need_tex and gt.shape[0] > 1 and self.tex.stride(0) == 0:
+            gt = gt.sum(0, keepdim=True)  # one texture read by every entry
+        if need_grid:
+            gg = gg.reshape(B, self.rows * _ROW, 2)[:, :self.M]
+        return (gt if need_tex else None), (gg if need_grid else None)
+
+
+class FastSample:
+    """One fast-path lookup; ``out`` holds the values, ``backward`` gives the first-order gradients.
+
+    texture [Bt,C,H,W], uv [B,M,2] -> out [B,C,M] (Bt = B or 1). Runs
+    without recording an autograd graph; ``tex_grad`` says whether the
+    texture will need a gradient (it decides the thread split).
+    """
+
+    def __init__(self, texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float,
+                 tex_grad: bool = False):
+        from .basic import separable_forward  # the reference; basic imports this module
+
+        B, M = uv.shape[:2]
+        shared = texture.shape[0] == 1
+        C, H, W = texture.shape[1:]
+        self.args = (kind, wrap_u, wrap_v, border)
+        self.texture = texture
+        # A NaN / inf uv would index garbage inside the kernel: sample a safe
+        # point instead and put the NaN back afterwards, so the pixel is NaN
+        # and passes no gradient. On CPU one sum says whether any point is
+        # bad (or so large that the sum overflows) without a per-point pass;
+        # on CUDA the masks are cheaper than that sync.
+        self.bad = None
+        if uv.is_cuda or not bool(torch.isfinite(uv.sum())):
+            self.bad = ~torch.isfinite(uv).all(-1)
+            uv = torch.where(self.bad.unsqueeze(-1), 0.0, uv)
+        if wrap_u == wrap_v:
+            folded = _fold(uv, wrap_u)
+        else:
+            folded = torch.stack((_fold(uv[..., 0], wrap_u), _fold(uv[..., 1], wrap_v)), -1)
+        self.uv, self.folded = uv, folded
+        self.edge = None
+        if shared and (wrap_u, wrap_v) != ("clamp", "clamp") and H * W > B * M:
+            # Padding would copy (and in backward fold back) a texture larger
+            # than the point set: read the texture as it is, and give the few
+            # points whose taps cross an edge to the gather reference.
+            pu = pv = 0
+            tex = texture
+            edge = _crosses_edge(folded, W, H, kind, wrap_u, wrap_v)
+            if bool(edge.any()):
+                self.edge = edge.nonzero(as_tuple=True)
+        else:
+            reach = _REACH[kind]
+            pu = 0 if wrap_u == "clamp" else reach
+            pv = 0 if wrap_v == "clamp" else reach
+            tex = _pad(texture, pu, pv, wrap_u, wrap_v, border)
+        self.pads = (pu, pv)
+        # uv of the (padded) texture, as grid_sample's [-1, 1] coordinates.
+        self.scale = uv.new_tensor([2 * W / (W + 2 * pu), 2 * H / (H + 2 * pv)])
+        shift = uv.new_tensor([2 * pu / (W + 2 * pu) - 1, 2 * pv / (H + 2 * pv) - 1])
+        self.rows = _Rows(tex, torch.addcmul(shift, folded, self.scale), kind, tex_grad)
+        out = self.rows.forward()
+        if self.edge is not None:
+            b, m = self.edge
+            vals = separable_forward(texture, folded[b, m].unsqueeze(0), kind, wrap_u, wrap_v, border)
+            out = out.transpose(1, 2).index_put((b, m), vals[0].t()).transpose(1, 2)
+        self.out = out if self.bad is None else torch.where(self.bad.unsqueeze(1), float("nan"), out)
+
+    def backward(self, g: Tensor, need_tex: bool, need_uv: bool) -> tuple[Tensor | None, Tensor | None]:
+        """Gradients of the texture and the uv for the output gradient g [B,C,M]; no graph."""
+        from .basic import separable_backward
+
+        kind, wrap_u, wrap_v, border = self.args
+        need_uv = need_uv and kind != "nearest"
+        if self.bad is not None:
+            g = torch.where(self.bad.unsqueeze(1), 0.0, g)
+        g_edge = None
+        if self.edge is not None:
+            # Edge points were read by the reference: their grid_sample
+            # values were replaced, so grid_sample gets no gradient for them.
+            gp = g.transpose(1, 2)
+            g_edge = gp[self.edge]  # [E, C]
+            g = gp.index_put(self.edge, g.new_zeros(())).transpose(1, 2)
+        gt, gg = self.rows.backward(g, need_tex, need_uv)
+        grad_tex = grad_uv = None
+        if need_tex:
+            pu, pv = self.pads
+            grad_tex = _unpad_axis(_unpad_axis(gt, 2, pv, wrap_v), 3, pu, wrap_u)
+        if need_uv:
+            grad_uv = gg * self.scale
+        if g_edge is not None:
+            b, m = self.edge
+            # No padding here, so grad_tex is grid_sample's own fresh buffer:
+            # the reference adds into it instead of a second texture-sized one.
+            _, eu = separable_backward(self.texture, self.folded[b, m].unsqueeze(0), g_edge.t().unsqueeze(0),
+                                       kind, wrap_u, wrap_v, border, need_tex, need_uv, into=grad_tex)
+            if need_uv:
+                grad_uv = grad_uv.index_put((b, m), eu[0])
+        if need_uv:
+            if wrap_u == wrap_v:
+                slope = _fold_slope(self.uv, wrap_u)
+                if slope is not None:
+                    grad_uv = grad_uv * slope
+            else:
+                su, sv = _fold_slope(self.uv[..., 0], wrap_u), _fold_slope(self.uv[..., 1], wrap_v)
+                if su is not None or sv is not None:
+                    one = torch.ones_like(self.uv[..., 0])
+                    grad_uv = grad_uv * torch.stack((one if su is None else su, one if sv is None else sv), -1)
+            if self.bad is not None:
+                grad_uv = torch.where(self.bad.unsqueeze(-1), 0.0, grad_uv)
+        return grad_tex, grad_uv
 
 
 def fast_forward(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float) -> Tensor:
-    """texture [Bt,C,H,W], uv [B,M,2] -> [B,C,M] (Bt = B or 1), differentiable once by autograd."""
-    from .basic import separable_forward  # the reference; basic imports this module
-
-    B, M = uv.shape[:2]
-    shared = texture.shape[0] == 1
-    C, H, W = texture.shape[1:]
-    # A NaN / inf uv would index garbage inside the kernel: sample a safe
-    # point instead and put the NaN back afterwards, so the pixel is NaN and
-    # passes no gradient to the texture. On CPU one sum says whether any
-    # point is bad (or so large that the sum overflows) without a per-point
-    # pass; on CUDA the masks are cheaper than that sync.
-    bad = None
-    if uv.is_cuda or not bool(torch.isfinite(uv.detach().sum())):
-        bad = ~torch.isfinite(uv).all(-1)
-        uv = torch.where(bad.unsqueeze(-1), 0.0, uv)
-    if wrap_u == wrap_v:
-        folded = _fold(uv, wrap_u)
-    else:
-        folded = torch.stack((_fold(uv[..., 0], wrap_u), _fold(uv[..., 1], wrap_v)), -1)
-    edge = None
-    if shared and (wrap_u, wrap_v) != ("clamp", "clamp") and H * W > B * M:
-        # Padding would copy (and in backward fold back) a texture larger
-        # than the point set: read the texture as it is, and give the few
-        # points whose taps cross an edge to the gather reference.
-        pu = pv = 0
-        tex = texture
-        edge = _crosses_edge(folded, W, H, kind, wrap_u, wrap_v)
-    else:
-        reach = _REACH[kind]
-        pu = 0 if wrap_u == "clamp" else reach
-        pv = 0 if wrap_v == "clamp" else reach
-        tex = _pad(texture, pu, pv, wrap_u, wrap_v, border)
-    if tex.shape[0] != B:
-        tex = tex.expand(B, -1, -1, -1)  # a view: grid_sample reads one texture for all
-    # uv of the (padded) texture, as grid_sample's [-1, 1] coordinates.
-    scale = uv.new_tensor([2 * W / (W + 2 * pu), 2 * H / (H + 2 * pv)])
-    shift = uv.new_tensor([2 * pu / (W + 2 * pu) - 1, 2 * pv / (H + 2 * pv) - 1])
-    out = _grid_sample_rows(tex, torch.addcmul(shift, folded, scale), kind)
-    if edge is not None and bool(edge.any()):
-        b, m = edge.nonzero(as_tuple=True)
-        vals = separable_forward(texture, folded[b, m].unsqueeze(0), kind, wrap_u, wrap_v, border)
-        out = out.transpose(1, 2).index_put((b, m), vals[0].t()).transpose(1, 2)
-    return out if bad is None else torch.where(bad.unsqueeze(1), float("nan"), out)
+    """texture [Bt,C,H,W], uv [B,M,2] -> [B,C,M] (Bt = B or 1), no gradient."""
+    return FastSample(texture, uv, kind, wrap_u, wrap_v, border).out

@@ -5,7 +5,7 @@ probe, and ``mip_blend``, its level grouping and blend, is shared with the
 EWA filter. Work is proportional to the points a level serves: points are
 sorted by level once, each level is read (with ``separable_sample``, the one
 bilinear of the package) only at the points that use it, and the results
-are put back in order with one ``index_copy``. A point whose level is an
+are put back in order with one ``index_add``. A point whose level is an
 exact integer, or clamped to the ends of the pyramid, costs one bilinear
 tap, not two.
 
@@ -32,70 +32,62 @@ def mip_blend(D: Tensor, levels: int, inputs: Sequence[Tensor], read: Callable[[
         levels: number of levels.
         inputs: per-point tensors ``[M, ...]`` that ``read`` needs (uv, ...).
         read: ``read(k, [x[sel] for x in inputs])`` -> [C, m], the level-k
-            value at a selection of points (a contiguous slice of them).
+            value at a selection of points.
         nearest: read only the nearest level ``round(D)``, weight 1.
 
     Returns:
         [C, M]: ``(1 - frac(D)) read(floor D) + frac(D) read(floor D + 1)``,
         differentiable in D through the weights.
 
-    Points are sorted once by (level, needs the upper level) so that each
-    level's points are one contiguous slice: a level is read at exactly the
-    points below and above it, no masks over all points per level. The upper
-    level is skipped where its weight is 0 (exact integer level, clamped at
-    either end) unless D needs a gradient inside the pyramid (d/dD = upper -
-    lower).
+    Every (point, level) pair to read is one *entry*: each point's lower
+    level, plus its upper level where that has a weight. Entries are sorted
+    by level once, so each level's entries are one contiguous block: one
+    gather of the inputs, one split, a read per level, one concatenation and
+    one ``index_add`` back to the points, whatever the number of levels (the
+    backward is as short). The upper level is skipped where its weight is 0
+    (exact integer level, clamped at either end) unless D needs a gradient
+    inside the pyramid (d/dD = upper - lower).
     """
     M = D.shape[0]
     Dd = D.detach()
     if nearest:
         k0 = torch.floor(Dd + 0.5).clamp_(0, levels - 1)
-        upper = torch.zeros_like(k0, dtype=torch.bool)
+        upper = None
     else:
         k0 = torch.floor(Dd).clamp_(0, levels - 1)
         upper = (k0 < levels - 1) & ((Dd > k0) | (D.requires_grad & (Dd > 0)))
-    key = k0.long() * 2 + upper.long()
-    counts = torch.bincount(key, minlength=2 * levels).tolist()
-    bounds = [0]
-    for c in counts:
-        bounds.append(bounds[-1] + c)
-    used = [i for i, c in enumerate(counts) if c]
-    if len(used) == 1:
-        perm = None
-        xs, Ds = list(inputs), D
+        if not bool(upper.any()):
+            upper = None
+    lev = k0.to(torch.uint8) if levels <= 256 else k0.long()
+    point = None
+    if upper is not None:
+        up = upper.nonzero().squeeze(1)
+        point = torch.cat((torch.arange(M, device=D.device), up))
+        lev = torch.cat((lev, lev.index_select(0, up) + 1))
+    counts = torch.bincount(lev, minlength=levels).tolist()
+    used = [k for k, c in enumerate(counts) if c]
+    if len(used) > 1:
+        # Small keys sort several times faster as uint8 (measured on CPU).
+        perm = torch.sort(lev, stable=True).indices
+        point = perm if point is None else point.index_select(0, perm)
+        lev = lev.index_select(0, perm)
+    if point is None:  # every point reads one level, in order
+        xs, De = list(inputs), D
     else:
-        # Small keys sort several times faster as uint8 (levels <= 64).
-        perm = torch.argsort(key.to(torch.uint8) if levels <= 64 else key)
-        xs = [x.index_select(0, perm) for x in inputs]
-        Ds = D.index_select(0, perm)
-    lower, upper_parts = [], []
-    for k in range(levels):
-        # Keys 2k-1 (level k-1 blending up), 2k, 2k+1 (level k, below):
-        # consecutive, hence one slice of the sorted points.
-        lo, mid, hi = bounds[max(2 * k - 1, 0)], bounds[2 * k], bounds[2 * k + 2]
-        if hi == lo:
-            continue
-        vals = read(k, [x[lo:hi] for x in xs])
-        if mid > lo:
-            upper_parts.append((2 * k - 1, vals[:, :mid - lo] * (Ds[lo:mid] - (k - 1))))
-        if hi > mid:
-            v = vals[:, mid - lo:]
-            lower.append(v if nearest else v * (1 - (Ds[mid:hi] - k)))
-    out = torch.cat(lower, 1) if len(lower) > 1 else lower[0]
-    if upper_parts:
-        # Upper terms belong to the odd-key slices; zeros pad the even ones.
-        pieces, done = [], 0
-        for key_odd, part in upper_parts:
-            if bounds[key_odd] > done:
-                pieces.append(out.new_zeros((out.shape[0], bounds[key_odd] - done)))
-            pieces.append(part)
-            done = bounds[key_odd + 1]
-        if done < M:
-            pieces.append(out.new_zeros((out.shape[0], M - done)))
-        out = out + torch.cat(pieces, 1)
-    if perm is None:
-        return out
-    return out.new_zeros(out.shape).index_copy(1, perm, out)
+        xs = [x.index_select(0, point) for x in inputs]
+        De = D.index_select(0, point)
+    sizes = [counts[k] for k in used]
+    parts = [read(k, list(chunk)) for k, chunk in zip(used, zip(*(x.split(sizes) for x in xs)))]
+    vals = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+    if not nearest:
+        # Tent weight 1 - |D - k|, written per side so that d/dD is -1 for
+        # the lower level and +1 for the upper one even where D = k exactly.
+        k = lev.to(D.dtype)
+        below = De >= k
+        vals = vals * torch.where(below, 1 - (De - k), 1 + (De - k))
+    if point is None:
+        return vals
+    return vals.new_zeros((vals.shape[0], M)).index_add(1, point, vals)
 
 
 def trilinear_points(levels: Sequence[Tensor], uv: Tensor, D: Tensor, wrap_u: str, wrap_v: str,
