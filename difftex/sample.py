@@ -13,7 +13,7 @@ from .filters.anisotropic import anisotropic_points
 from .filters.auto import auto_tap_count
 from .filters.basic import separable_sample
 from .filters.ewa import ewa_points
-from .filters.trilinear import trilinear_points
+from .filters.trilinear import Levels, TexturePyramid, trilinear_points
 from .lod import ellipse, footprint, level, log2_length
 from .mipmap import Mipmap, level_count, mipmap
 from .wrap import Wrap, parse_wrap
@@ -178,8 +178,10 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
                 wrap_u: str, wrap_v: str, border: float) -> Tensor:
     """The mip filters on flat point lists; one pass per texture of the batch.
 
-    A plain texture tensor is turned into its pyramid here: "auto" builds
-    only the levels its footprints read (the same values as the full chain).
+    A plain texture's pyramid is built only as deep as needed ("auto": the
+    levels its footprints read; the same values as the full chain): by the
+    reading node of the bilinear-tap filters (``TexturePyramid``), here for
+    EWA.
     """
     base = pyramid.levels[0] if isinstance(pyramid, Mipmap) else pyramid
     Bt, C, H, W = base.shape
@@ -203,10 +205,14 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
                 D = level(ell.log2_major.detach() - torch.log2(n_auto.to(dx.dtype)), b, level_count(H, W))
                 # ceil(D) is the coarsest level read (floor(D) + 1 where D is fractional).
                 depth = int(D.max().ceil().item()) + 1
-        pyramid = mipmap(pyramid, max_levels=depth)
-    levels = pyramid.levels
+        count = min(depth or level_count(H, W), level_count(H, W))
+        # EWA reads levels with its own gather; the bilinear-tap filters get
+        # the texture and build its pyramid inside their reading node.
+        levels = mipmap(pyramid, max_levels=count).levels if filter == "ewa" else None
+    else:
+        levels = pyramid.levels
 
-    def run(lv: list[Tensor], sl: slice) -> Tensor:
+    def run(lv: Levels, sl: slice) -> Tensor:
         b = bias[sl] if isinstance(bias, Tensor) and bias.dim() == 1 else bias
         if filter in ("trilinear", "nearest-mip"):
             D = level(log2_len[sl], b, len(lv))
@@ -218,8 +224,13 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
         fn = anisotropic_points if filter == "anisotropic" else ewa_points
         return fn(lv, pts[sl], f, e, b, max_aniso, wrap_u, wrap_v, border)
 
+    def levels_of(i: int | None) -> Levels:
+        if levels is None:
+            return TexturePyramid(base if i is None else base[i:i + 1], count)
+        return levels if i is None else [lv[i:i + 1] for lv in levels]
+
     if Bt == 1:
         # One texture for every view: all points in one flat list.
-        return run(levels, slice(None)).view(C, B, Ho, Wo).transpose(0, 1)
-    outs = [run([lv[i:i + 1] for lv in levels], slice(i * P, (i + 1) * P)) for i in range(B)]
+        return run(levels_of(None), slice(None)).view(C, B, Ho, Wo).transpose(0, 1)
+    outs = [run(levels_of(i), slice(i * P, (i + 1) * P)) for i in range(B)]
     return torch.stack(outs).view(B, C, Ho, Wo)

@@ -39,7 +39,7 @@ from torch.utils.checkpoint import checkpoint
 
 from ..lod import Ellipse, Footprint, level
 from ..wrap import wrap_index
-from .trilinear import mip_blend
+from .trilinear import mip_blend, per_level
 
 _ALPHA = 2.0                      # pbrt-v4's Gaussian falloff
 _CHUNK = 1 << 20                  # (point, texel) pairs per chunk
@@ -199,5 +199,5 @@ def ewa_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse
     def read(k: int, xs: list[Tensor]) -> Tensor:
         return _ewa_level(levels[k], *xs, H, W, k == n - 1, wrap_u, wrap_v, border)
 
-    out = mip_blend(D, n, [uv_safe, sigma, minor, scale], read)
+    out = mip_blend(D, n, [uv_safe, sigma, minor, scale], per_level(read))
     return torch.where(ok, out, torch.full_like(out, float("nan")))

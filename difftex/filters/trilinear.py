@@ -9,21 +9,100 @@ are put back in order with one ``index_add``. A point whose level is an
 exact integer, or clamped to the ends of the pyramid, costs one bilinear
 tap, not two.
 
+Given a plain texture (``TexturePyramid``) rather than a ``Mipmap``, the
+pyramid is built and every level read inside one autograd node
+(``_PyramidRead``), whose backward folds the levels' texture gradients into
+one another in place: one gradient buffer per level read, where separate
+nodes would allocate (and on CPU page-fault) a second, summed, copy of each.
+
 Flat layout: one texture's levels ``[1, C, H_k, W_k]``, points ``[M, ...]``,
 result ``[C, M]``; ``difftex.sample`` does batching and checks.
 """
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Callable, Sequence, Union
 
 import torch
 from torch import Tensor
 
-from .basic import separable_sample
+from ..mipmap import _build, mipmap, pyramid_adjoint
+from . import basic
+from .basic import separable_backward, separable_sample
+from .fast import FastSample
+
+# read(used levels, entries per level, entry tensors sorted by level) -> [C, E]
+Reader = Callable[[list[int], list[int], list[Tensor]], Tensor]
 
 
-def mip_blend(D: Tensor, levels: int, inputs: Sequence[Tensor], read: Callable[[int, list[Tensor]], Tensor], *,
-              nearest: bool = False) -> Tensor:
+def per_level(read_one: Callable[[int, list[Tensor]], Tensor]) -> Reader:
+    """A ``mip_blend`` reader from a function that reads one level at its entries."""
+    def read(used: list[int], sizes: list[int], xs: list[Tensor]) -> Tensor:
+        chunks = zip(*(x.split(sizes) for x in xs))
+        parts = [read_one(k, list(chunk)) for k, chunk in zip(used, chunks)]
+        return parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+    return read
+
+
+class TexturePyramid:
+    """The pyramid of ``texture`` [1, C, H, W] down to ``count`` levels, built where it is read."""
+
+    def __init__(self, texture: Tensor, count: int):
+        self.texture, self.count = texture, count
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, k: int) -> Tensor:
+        if k != 0:
+            raise IndexError("TexturePyramid: only level 0 exists before the pyramid is built")
+        return self.texture
+
+
+Levels = Union[Sequence[Tensor], TexturePyramid]
+
+
+class _PyramidRead(torch.autograd.Function):
+    """Bilinear reads of several levels of the pyramid of one texture, in one node.
+
+    texture [1, C, H, W], uv [E, 2] entries sorted by level (``sizes[i]`` of
+    them read level ``used[i]``) -> [C, E].
+    """
+
+    @staticmethod
+    def forward(ctx, texture: Tensor, uv: Tensor, used: list[int], sizes: list[int], wrap_u: str, wrap_v: str,
+                border: float) -> Tensor:
+        ctx.save_for_backward(texture, uv)
+        ctx.args = (used, sizes, wrap_u, wrap_v, border)
+        levels = _build(texture, used[-1] + 1)
+        ctx.reads = [FastSample(levels[k], chunk.unsqueeze(0), "linear", wrap_u, wrap_v, border,
+                                tex_grad=ctx.needs_input_grad[0]) for k, chunk in zip(used, uv.split(sizes))]
+        parts = [r.out[0] for r in ctx.reads]
+        return parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+
+    @staticmethod
+    def backward(ctx, grad_out: Tensor):
+        texture, uv = ctx.saved_tensors
+        used, sizes, wrap_u, wrap_v, border = ctx.args
+        need_tex, need_uv = ctx.needs_input_grad[:2]
+        grads: list[Tensor | None] = [None] * (used[-1] + 1)
+        guv = []
+        first_order = not torch.is_grad_enabled()
+        # Double backward (create_graph=True) uses the differentiable reference.
+        levels = None if first_order else mipmap(texture, max_levels=used[-1] + 1).levels
+        for i, (k, g) in enumerate(zip(used, grad_out.split(sizes, 1))):
+            if first_order:
+                gt, gu = ctx.reads[i].backward(g.unsqueeze(0), need_tex, need_uv)
+            else:
+                gt, gu = separable_backward(levels[k], uv.split(sizes)[i].unsqueeze(0), g.unsqueeze(0), "linear",
+                                            wrap_u, wrap_v, border, need_tex, need_uv)
+            grads[k] = gt
+            guv.append(gu)
+        grad_tex = pyramid_adjoint(grads, tuple(texture.shape[-2:]), inplace=first_order) if need_tex else None
+        grad_uv = (guv[0] if len(guv) == 1 else torch.cat(guv, 1))[0] if need_uv else None
+        return grad_tex, grad_uv, None, None, None, None, None
+
+
+def mip_blend(D: Tensor, levels: int, inputs: Sequence[Tensor], read: Reader, *, nearest: bool = False) -> Tensor:
     """Blend per-level results at ``floor(D)`` and ``floor(D) + 1``, each level read once for its points.
 
     Args:
@@ -31,8 +110,10 @@ def mip_blend(D: Tensor, levels: int, inputs: Sequence[Tensor], read: Callable[[
             (``difftex.lod.level``); may carry a gradient.
         levels: number of levels.
         inputs: per-point tensors ``[M, ...]`` that ``read`` needs (uv, ...).
-        read: ``read(k, [x[sel] for x in inputs])`` -> [C, m], the level-k
-            value at a selection of points.
+        read: ``read(used, sizes, [x[entries] for x in inputs])`` -> [C, E]:
+            the values at the entries, which come sorted by level, ``sizes[i]``
+            of them reading level ``used[i]`` (``per_level`` makes one from a
+            one-level reader).
         nearest: read only the nearest level ``round(D)``, weight 1.
 
     Returns:
@@ -76,9 +157,7 @@ def mip_blend(D: Tensor, levels: int, inputs: Sequence[Tensor], read: Callable[[
     else:
         xs = [x.index_select(0, point) for x in inputs]
         De = D.index_select(0, point)
-    sizes = [counts[k] for k in used]
-    parts = [read(k, list(chunk)) for k, chunk in zip(used, zip(*(x.split(sizes) for x in xs)))]
-    vals = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+    vals = read(used, [counts[k] for k in used], xs)
     if not nearest:
         # Tent weight 1 - |D - k|, written per side so that d/dD is -1 for
         # the lower level and +1 for the upper one even where D = k exactly.
@@ -90,21 +169,32 @@ def mip_blend(D: Tensor, levels: int, inputs: Sequence[Tensor], read: Callable[[
     return vals.new_zeros((vals.shape[0], M)).index_add(1, point, vals)
 
 
-def trilinear_points(levels: Sequence[Tensor], uv: Tensor, D: Tensor, wrap_u: str, wrap_v: str,
-                     border: float, *, nearest_mip: bool = False) -> Tensor:
+def trilinear_points(levels: Levels, uv: Tensor, D: Tensor, wrap_u: str, wrap_v: str, border: float, *,
+                     nearest_mip: bool = False) -> Tensor:
     """Trilinear taps of one texture.
 
     Args:
-        levels: the pyramid of one texture, ``[1, C, H_k, W_k]`` each.
+        levels: the pyramid of one texture, ``[1, C, H_k, W_k]`` each, or a
+            ``TexturePyramid`` (built inside the read).
         uv: [M, 2] sample points (DESIGN.md convention).
         D: [M] clamped level per point.
         wrap_u, wrap_v, border: as in ``separable_sample``.
         nearest_mip: bilinear at the nearest level instead of blending two.
 
     Returns:
-        [C, M]. Differentiable in every level, uv and D (D: trilinear only).
+        [C, M]. Differentiable in every level (or the texture), uv and D
+        (D: trilinear only).
     """
-    def read(k: int, xs: list[Tensor]) -> Tensor:
+    if isinstance(levels, TexturePyramid):
+        tex = levels.texture
+        if basic.IMPL == "fast" and torch.is_grad_enabled() and (tex.requires_grad or uv.requires_grad):
+            def read(used: list[int], sizes: list[int], xs: list[Tensor]) -> Tensor:
+                return _PyramidRead.apply(tex, xs[0], used, sizes, wrap_u, wrap_v, float(border))
+            return mip_blend(D, len(levels), [uv], read, nearest=nearest_mip)
+        # No gradient (or the reference path): the levels as plain tensors.
+        levels = mipmap(tex, max_levels=len(levels)).levels
+
+    def read_one(k: int, xs: list[Tensor]) -> Tensor:
         return separable_sample(levels[k], xs[0].unsqueeze(0), "linear", wrap_u, wrap_v, border)[0]
 
-    return mip_blend(D, len(levels), [uv], read, nearest=nearest_mip)
+    return mip_blend(D, len(levels), [uv], per_level(read_one), nearest=nearest_mip)
