@@ -22,9 +22,9 @@ from .wrap import Wrap, parse_wrap
 SEPARABLE = {"nearest": "nearest", "bilinear": "linear", "bicubic": "cubic"}
 # Filters that read a mip pyramid and need uv_dx / uv_dy.
 MIP_FILTERS = ("trilinear", "nearest-mip", "anisotropic", "ewa", "auto")
-# Default of ``tolerance`` ("auto"): within 0.5 dB of anisotropic 16 on the
-# grazing-plane, sphere and spot scenes (docs/auto_filter.md).
-DEFAULT_TOLERANCE = 0.25
+# Default of ``tolerance`` ("auto"): within 0.5 dB of anisotropic 16 on every
+# scene of experiments/speed_vs_accuracy.py (filters/auto.py).
+DEFAULT_TOLERANCE = 0.1
 FILTERS = tuple(SEPARABLE) + MIP_FILTERS
 
 
@@ -61,7 +61,8 @@ def sample(
             max_aniso trilinear taps along the footprint's major axis),
             "ewa" (Gaussian elliptical weighted average, pbrt-v4 style) and
             "auto" (per pixel the cheapest that ``tolerance`` allows: one
-            bilinear tap on level 0 where magnified, one trilinear tap where
+            bilinear tap on level 0 where the footprint is under half a
+            texel, one trilinear tap where
             the footprint is nearly round, else anisotropic with just enough
             taps). See ``difftex.filters`` for each.
         wrap: "repeat" | "clamp" | "mirror" | "border", one for both axes or a
@@ -76,10 +77,10 @@ def sample(
         tolerance: "auto" only: how much wider a tap's prefilter (2^level)
             may be than the anisotropic filter's, as a fraction; a number
             >= 0. 0 takes the anisotropic filter's taps (fewer only where
-            the minor axis is under a level-0 texel); larger values take
-            ``1 + tolerance`` times fewer taps (rounded up) and blur more
-            across the footprint. The default 0.25 stays within 0.5 dB of
-            "anisotropic" at the same max_aniso on the test scenes.
+            the minor axis is under half a level-0 texel); larger values
+            take ``1 + tolerance`` times fewer taps (rounded up) and blur
+            more across the footprint. The default 0.1 stays within 0.5 dB
+            of "anisotropic" at the same max_aniso on the test scenes.
 
     Returns:
         [B, C, Ho, Wo], same dtype and device as the inputs.
