@@ -84,11 +84,11 @@ def pyramid_adjoint(grads: list[Tensor | None], base_hw: tuple[int, int], *, inp
     """
     acc = None
     for k in range(len(grads) - 1, -1, -1):
-        acc = grads[k] if acc is None else _step_adjoint(grads[k], acc, level_size(*base_hw, k), inplace)
+        acc = grads[k] if acc is None else step_adjoint(grads[k], acc, level_size(*base_hw, k), inplace)
     return acc
 
 
-def _step_adjoint(fine: Tensor | None, coarse: Tensor, fine_hw: tuple[int, int], inplace: bool) -> Tensor:
+def step_adjoint(fine: Tensor | None, coarse: Tensor, fine_hw: tuple[int, int], inplace: bool) -> Tensor:
     """``fine`` plus the transpose of the step that made ``coarse`` from a level of size ``fine_hw``."""
     B, C, h, w = coarse.shape
     H, W = fine_hw

@@ -18,7 +18,7 @@ builds the pyramid from the texture (part of the cost, as in training).
 
 Prints a markdown table and writes it to docs/auto_filter.md.
 
-    python experiments/bench_auto.py [--repeats 7] [--tolerance 0.25] [--out docs/auto_filter.md]
+    python experiments/bench_auto.py [--repeats 7] [--tolerance 0.1] [--out docs/auto_filter.md]
 """
 from __future__ import annotations
 
@@ -48,21 +48,25 @@ NOTES = """
 ## How auto chooses (difftex/filters/auto.py)
 
 Per pixel, with the footprint's axes from `difftex.lod.ellipse` (level-0 texels, times `2^lod_bias`):
-`N_a = min(ceil(major / max(minor, 1)), max_aniso)` and `N = ceil(N_a / (1 + tolerance))` trilinear taps
-(`N = N_a` where the axis ratio exceeds max_aniso: those taps are already wider than the minor axis), run through the anisotropic filter's own code (`anisotropic_points(..., taps=N)`). Magnified pixels get one
-tap at level 0 (bilinear), round footprints one tap (trilinear), long ones 2-16. `tolerance` (default 0.25)
-is how much wider (as a fraction) a tap's prefilter may be than anisotropic's; with 0 auto equals anisotropic
-wherever the minor axis is at least a texel.
+`N_a = min(ceil(major / max(minor, 1/2)), max_aniso)` and `N = ceil(N_a / (1 + tolerance))` trilinear taps
+(`N = N_a` where the axis ratio exceeds max_aniso: those taps are already wider than the minor axis), run
+through the anisotropic filter's own code (`anisotropic_points(..., taps=N)`). Pixels whose major axis is
+under half a texel get one tap at level 0 (bilinear), round footprints one tap (trilinear), long ones 2-16.
+`tolerance` (default 0.1) is how much wider (as a fraction) a tap's prefilter may be than anisotropic's;
+with 0 auto equals anisotropic wherever the minor axis is at least half a texel.
 
 ## Findings
 
-* Within 0.5 dB of anisotropic 16 on every scene above (worst -0.25 dB, grazing plane at pitch 20), never
-  more taps; tap savings are 7-8 % on the grazing plane at pitches 10-20 and 0-3 % elsewhere. Forward
-  times follow the taps but the differences are within this machine's noise except on the grazing plane.
-  (Before that max_aniso rule: worst -0.41 dB, savings 10-13 %.)
-* Not on every scene of experiments/speed_vs_accuracy.py: on the closed-form checker plane at 5 degrees
-  auto is 2.1 dB under anisotropic 16, and on the magnified sphere 5 dB under, where auto reads plain
-  bilinear and anisotropic's extra level-0 taps act as supersampling inside the pixel.
+* Within 0.5 dB of anisotropic 16 on every scene above and on the 17 scenes of
+  experiments/speed_vs_accuracy.py (worst there -0.33 dB, the 5-degree spot plane), never more taps.
+  On these scenes that leaves little to save: anisotropic's taps are nearly all needed for its accuracy,
+  so auto takes 0-3 % fewer taps and its time is anisotropic's within this machine's noise. It saves where
+  footprints are magnified below half a texel (one read instead of anisotropic's two) or round.
+* What the first version gave away: with tolerance 0.25 it took 7-10 % fewer taps on grazing planes but
+  fell 2.1 dB under anisotropic 16 on the closed-form checker plane at 5 degrees (1.2 dB on the spot
+  plane); with a one-texel spacing floor it read plain bilinear on a sphere magnified 2x, 5.3 dB under
+  anisotropic, whose two level-0 taps there act as supersampling inside the pixel. Below half a texel the
+  gap between one and two level-0 taps stays 5-8 dB, but both errors are under one 8-bit level (52-72 dB).
 * Making nearly-round footprints (axis ratio 1-1.25) one trilinear tap, as a first version did, costs
   3-5 dB on spot's texture: anisotropic's two taps there sit a full level finer than trilinear's one, and
   trilinear's level (box pyramid + bilinear) is already blurrier than the pixel's box footprint. So the

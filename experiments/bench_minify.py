@@ -52,6 +52,16 @@ def _timed_pair(fn, base, repeats: int) -> tuple[float, float, float]:
     return statistics.median(ts), statistics.median(tb), statistics.median(ratios)
 
 
+def _no_grad(fn) -> None:
+    with torch.no_grad():
+        fn()
+
+
+def _backward(fn, clear) -> None:
+    clear()
+    fn().sum().backward()
+
+
 def _grid_sample_repeat(tex: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """grid_sample bilinear with exact repeat: 1-texel circular pad + folded uv."""
     H, W = tex.shape[-2:]
@@ -116,12 +126,10 @@ def main() -> None:
             lv.grad = None
 
     def gs_fwd():
-        with torch.no_grad():
-            gs()
+        _no_grad(gs)
 
     def gs_fwd_bwd():
-        clear()
-        gs().sum().backward()
+        _backward(gs, clear)
 
     results = []
     for label, fn in rows:
@@ -131,12 +139,10 @@ def main() -> None:
         reps = args.repeats if "ewa" not in label and "8x8" not in label else max(3, args.repeats // 3)
 
         def fwd():
-            with torch.no_grad():
-                fn()
+            _no_grad(fn)
 
         def fwd_bwd():
-            clear()
-            fn().sum().backward()
+            _backward(fn, clear)
 
         f_ms, fb_ms, f_ratio = _timed_pair(fwd, gs_fwd, reps)
         b_ms, bb_ms, b_ratio = _timed_pair(fwd_bwd, gs_fwd_bwd, reps)
@@ -161,6 +167,19 @@ def main() -> None:
     for label, score, f_ms, b_ms, f_ratio, b_ratio, fb_ms, bb_ms in results:
         lines.append(f"| {label} | {score:.2f} | {f_ms:.2f} | {b_ms:.2f} | {f_ratio:.1f}x | {b_ratio:.1f}x | "
                      f"{fb_ms:.2f} / {bb_ms:.2f} |")
+    # The issue's two targets, each timed alternately against its own peer
+    # (rows measured minutes apart see different machine loads).
+    named = dict(rows)
+    aniso2 = named["difftex anisotropic, max_aniso 2"]
+    ss4 = named["grid_sample bilinear, 4x4 supersampled"]
+    trilinear = named["difftex trilinear"]
+    lines += ["", "Head to head, each pair timed alternately (medians of the per-pair ratios):", ""]
+    for label, fn, peer_label, peer in (("trilinear", trilinear, "grid_sample bilinear", gs),
+                                        ("anisotropic max_aniso 2", aniso2, "grid_sample 4x4 supersampled", ss4)):
+        ratios = []
+        for wrap in (lambda f: (lambda: _no_grad(f)), lambda f: (lambda: _backward(f, clear))):
+            ratios.append(_timed_pair(wrap(fn), wrap(peer), args.repeats)[2])
+        lines.append(f"* {label} / {peer_label}: forward {ratios[0]:.2f}x, forward+backward {ratios[1]:.2f}x")
     table = "\n".join(lines)
     print()
     print(table)

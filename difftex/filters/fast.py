@@ -238,14 +238,25 @@ class FastSample:
             out = out.transpose(1, 2).index_put((b, m), vals[0].t()).transpose(1, 2)
         self.out = out if self.bad is None else torch.where(self.bad.unsqueeze(1), float("nan"), out)
 
-    def backward(self, g: Tensor, need_tex: bool, need_uv: bool) -> tuple[Tensor | None, Tensor | None]:
-        """Gradients of the texture and the uv for the output gradient g [B,C,M]; no graph."""
+    def backward(self, g: Tensor, need_tex: bool, need_uv: bool,
+                 into: Tensor | None = None) -> tuple[Tensor | None, Tensor | None]:
+        """Gradients of the texture and the uv for the output gradient g [B,C,M]; no graph.
+
+        ``into``: a texture-shaped buffer the caller owns; the texture
+        gradient is scattered into it by the gather reference instead of
+        grid_sample's own zero-filled one (cheaper where the points are few
+        next to the texels), and it is returned as the texture gradient.
+        """
         from .basic import separable_backward
 
         kind, wrap_u, wrap_v, border = self.args
         need_uv = need_uv and kind != "nearest"
         if self.bad is not None:
             g = torch.where(self.bad.unsqueeze(1), 0.0, g)
+        sparse = need_tex and into is not None
+        if sparse:
+            separable_backward(self.texture, self.folded, g, kind, wrap_u, wrap_v, border, True, False, into=into)
+            need_tex = False
         g_edge = None
         if self.edge is not None:
             # Edge points were read by the reference: their grid_sample
@@ -280,7 +291,7 @@ class FastSample:
                     grad_uv = grad_uv * torch.stack((one if su is None else su, one if sv is None else sv), -1)
             if self.bad is not None:
                 grad_uv = torch.where(self.bad.unsqueeze(-1), 0.0, grad_uv)
-        return grad_tex, grad_uv
+        return (into if sparse else grad_tex), grad_uv
 
 
 def fast_forward(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float) -> Tensor:

@@ -25,7 +25,7 @@ from typing import Callable, Sequence, Union
 import torch
 from torch import Tensor
 
-from ..mipmap import _build, mipmap, pyramid_adjoint
+from ..mipmap import _build, level_size, mipmap, pyramid_adjoint, step_adjoint
 from . import basic
 from .basic import separable_backward, separable_sample
 from .fast import FastSample
@@ -60,6 +60,12 @@ class TexturePyramid:
 
 Levels = Union[Sequence[Tensor], TexturePyramid]
 
+# A level read at fewer than 1/_SPARSE points per texel gets its texture
+# gradient by the gather scatter into the spread of the coarser levels'
+# total, not by grid_sample's zero-filled buffer (measured on CPU: the fill of
+# a 1024^2 level costs more than scattering 15k points).
+_SPARSE = 8
+
 
 class _PyramidRead(torch.autograd.Function):
     """Bilinear reads of several levels of the pyramid of one texture, in one node.
@@ -84,20 +90,36 @@ class _PyramidRead(torch.autograd.Function):
         texture, uv = ctx.saved_tensors
         used, sizes, wrap_u, wrap_v, border = ctx.args
         need_tex, need_uv = ctx.needs_input_grad[:2]
-        grads: list[Tensor | None] = [None] * (used[-1] + 1)
-        guv = []
-        first_order = not torch.is_grad_enabled()
-        # Double backward (create_graph=True) uses the differentiable reference.
-        levels = None if first_order else mipmap(texture, max_levels=used[-1] + 1).levels
-        for i, (k, g) in enumerate(zip(used, grad_out.split(sizes, 1))):
-            if first_order:
-                gt, gu = ctx.reads[i].backward(g.unsqueeze(0), need_tex, need_uv)
-            else:
-                gt, gu = separable_backward(levels[k], uv.split(sizes)[i].unsqueeze(0), g.unsqueeze(0), "linear",
-                                            wrap_u, wrap_v, border, need_tex, need_uv)
-            grads[k] = gt
-            guv.append(gu)
-        grad_tex = pyramid_adjoint(grads, tuple(texture.shape[-2:]), inplace=first_order) if need_tex else None
+        g_parts = grad_out.split(sizes, 1)
+        if torch.is_grad_enabled():
+            # Double backward (create_graph=True): the differentiable reference.
+            levels = mipmap(texture, max_levels=used[-1] + 1).levels
+            grads: list[Tensor | None] = [None] * (used[-1] + 1)
+            guv = []
+            for k, u, g in zip(used, uv.split(sizes), g_parts):
+                grads[k], gu = separable_backward(levels[k], u.unsqueeze(0), g.unsqueeze(0), "linear",
+                                                  wrap_u, wrap_v, border, need_tex, need_uv)
+                guv.append(gu)
+            grad_tex = pyramid_adjoint(grads, tuple(texture.shape[-2:]), inplace=False) if need_tex else None
+        else:
+            # Coarse to fine, each level's total gradient in one buffer: a
+            # level read at few points (next to its texels) gets the spread
+            # of the coarser total first and its own gradient scattered into
+            # it, instead of a zero-filled texture-sized buffer plus an add.
+            guv = [None] * len(used)
+            acc = None
+            H, W = texture.shape[-2:]
+            for k in range(used[-1], -1, -1):
+                hw = level_size(H, W, k)
+                if k not in used:
+                    acc = None if acc is None else step_adjoint(None, acc, hw, True)
+                    continue
+                i = used.index(k)
+                sparse = need_tex and acc is not None and sizes[i] * _SPARSE < hw[0] * hw[1]
+                gt, guv[i] = ctx.reads[i].backward(g_parts[i].unsqueeze(0), need_tex, need_uv,
+                                                   into=step_adjoint(None, acc, hw, True) if sparse else None)
+                acc = gt if sparse or acc is None else step_adjoint(gt, acc, hw, True)
+            grad_tex = acc if need_tex else None
         grad_uv = (guv[0] if len(guv) == 1 else torch.cat(guv, 1))[0] if need_uv else None
         return grad_tex, grad_uv, None, None, None, None, None
 
