@@ -123,6 +123,10 @@ def sample(
         names.append("lod_bias")
     B = broadcast_batch(names, sizes)
     Bt, C = texture.shape[:2]
+    if B * Ho * Wo == 0:
+        # An empty image: nothing to read, but the result stays in the inputs' graph.
+        parts = [t for t in (texture, uv, *derivs, bias) if isinstance(t, Tensor)]
+        return sum(t.reshape(-1)[:0].reshape(B, C, Ho, Wo) for t in parts)
     if filter in MIP_FILTERS:
         if pyramid is None:
             pyramid = texture

@@ -227,6 +227,21 @@ def test_nan_uv_stays_in_its_pixel(filt, wrap):
     assert torch.isfinite(tex.grad).all()
 
 
+@pytest.mark.parametrize("filt", ["nearest", "bilinear", "bicubic", "trilinear", "nearest-mip", "anisotropic",
+                                  "ewa", "auto"])
+def test_empty_image(filt):
+    # An image with no pixels (Ho = 0) or no views (B = 0): an empty result in the graph.
+    tex = torch.rand(1, 3, 8, 8, requires_grad=True)
+    for shape in ((1, 0, 5, 2), (0, 4, 5, 2)):
+        uv = torch.rand(shape)
+        kw = dict(uv_dx=torch.full(shape, 0.1), uv_dy=torch.full(shape, 0.1)) if filt not in (
+            "nearest", "bilinear", "bicubic") else {}
+        out = difftex.sample(tex, uv, filter=filt, **kw)
+        assert out.shape == (shape[0], 3, shape[1], shape[2])
+        out.sum().backward()
+        assert torch.equal(tex.grad, torch.zeros_like(tex))
+
+
 def test_huge_uv_is_finite():
     tex, uv = _rand_case(11, (8, 8), B=1, C=1, dtype=torch.float32)
     uv = uv * 1e30

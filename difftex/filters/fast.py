@@ -153,6 +153,8 @@ class _Rows:
         if rows * _ROW != M:
             grid = F.pad(grid, (0, 0, 0, rows * _ROW - M))
         self.kind, self.B, self.M, self.rows, self.split = kind, B, M, rows, split
+        # One texture read by several entries: its gradient sums over them.
+        self.shared = tex.shape[0] == 1 and B * split > 1
         self.tex = tex.expand(B * split, -1, -1, -1)  # a view: grid_sample reads one texture for all
         self.grid = grid.view(B * split, rows // split, _ROW, 2)
 
@@ -173,8 +175,8 @@ class _Rows:
         g = g.reshape(B * self.split, C, self.rows // self.split, _ROW)
         gt, gg = torch.ops.aten.grid_sampler_2d_backward(
             g, self.tex, self.grid, _GS_ENUM[self.kind], 1, False, [need_tex, need_grid])
-        if need_tex and gt.shape[0] > 1 and self.tex.stride(0) == 0:
-            gt = gt.sum(0, keepdim=True)  # one texture read by every entry
+        if need_tex and self.shared:
+            gt = gt.sum(0, keepdim=True)
         if need_grid:
             gg = gg.reshape(B, self.rows * _ROW, 2)[:, :self.M]
         return (gt if need_tex else None), (gg if need_grid else None)
