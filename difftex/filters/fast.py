@@ -23,6 +23,8 @@ falls back to the reference backward.
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -47,6 +49,7 @@ def _fpad_mode(mode: str, p: int, n: int) -> str | None:
     return _FPAD[mode] if (mode == "border" or p <= n) else None
 
 
+@lru_cache(maxsize=256)
 def _pad_index(mode: str, p: int, n: int, device: torch.device) -> Tensor:
     """Source texel of each of the n + 2p positions of an axis padded by ``p`` (repeat / mirror, as wrap.py maps them)."""
     i = torch.arange(-p, n + p, device=device)
@@ -144,41 +147,43 @@ class _Rows:
 
     def __init__(self, tex: Tensor, grid: Tensor, kind: str, tex_grad: bool):
         B, M = grid.shape[:2]
-        rows = -(-M // _ROW)
         split = 1
         h, w = tex.shape[-2:]
         if B == 1 and not grid.is_cuda and (not tex_grad or M >= h * w):
-            split = max(1, min(torch.get_num_threads(), rows))
-            rows = -(-rows // split) * split
-        if rows * _ROW != M:
-            grid = F.pad(grid, (0, 0, 0, rows * _ROW - M))
-        self.kind, self.B, self.M, self.rows, self.split = kind, B, M, rows, split
+            split = max(1, min(torch.get_num_threads(), -(-M // _ROW)))
+        # Unsplit, the points are one row (as fast, and no padded copy).
+        row = -(-M // split) if split == 1 else _ROW
+        rows = -(-M // (row * split)) * split
+        if rows * row != M:
+            grid = F.pad(grid, (0, 0, 0, rows * row - M))
+        self.kind, self.B, self.M, self.rows, self.row, self.split = kind, B, M, rows, row, split
         # One texture read by several entries: its gradient sums over them.
         self.shared = tex.shape[0] == 1 and B * split > 1
         self.tex = tex.expand(B * split, -1, -1, -1)  # a view: grid_sample reads one texture for all
-        self.grid = grid.view(B * split, rows // split, _ROW, 2)
+        self.grid = grid.view(B * split, rows // split, row, 2)
 
     def forward(self) -> Tensor:
         out = F.grid_sample(self.tex, self.grid, mode=_GS_MODE[self.kind], padding_mode="border",
                             align_corners=False)
         if self.split > 1:
-            out = out.transpose(0, 1)  # [C, split, rows / split, _ROW]
-        return out.reshape(self.B, -1, self.rows * _ROW)[:, :, :self.M]
+            out = out.transpose(0, 1)  # [C, split, rows / split, row]
+        return out.reshape(self.B, -1, self.rows * self.row)[:, :, :self.M]
 
     def backward(self, g: Tensor, need_tex: bool, need_grid: bool) -> tuple[Tensor | None, Tensor | None]:
         """g [B,C,M] -> (gradient of the texture [1 or B, C, h, w], of the grid [B, M, 2])."""
         B, C = g.shape[:2]
-        if self.rows * _ROW != self.M:
-            g = F.pad(g, (0, self.rows * _ROW - self.M))
+        total = self.rows * self.row
+        if total != self.M:
+            g = F.pad(g, (0, total - self.M))
         if self.split > 1:
-            g = g.view(C, self.split, self.rows // self.split, _ROW).transpose(0, 1)
-        g = g.reshape(B * self.split, C, self.rows // self.split, _ROW)
+            g = g.view(C, self.split, self.rows // self.split, self.row).transpose(0, 1)
+        g = g.reshape(B * self.split, C, self.rows // self.split, self.row)
         gt, gg = torch.ops.aten.grid_sampler_2d_backward(
             g, self.tex, self.grid, _GS_ENUM[self.kind], 1, False, [need_tex, need_grid])
         if need_tex and self.shared:
             gt = gt.sum(0, keepdim=True)
         if need_grid:
-            gg = gg.reshape(B, self.rows * _ROW, 2)[:, :self.M]
+            gg = gg.reshape(B, total, 2)[:, :self.M]
         return (gt if need_tex else None), (gg if need_grid else None)
 
 
@@ -237,7 +242,7 @@ class FastSample:
         if self.edge is not None:
             b, m = self.edge
             vals = separable_forward(texture, folded[b, m].unsqueeze(0), kind, wrap_u, wrap_v, border)
-            out = out.transpose(1, 2).index_put((b, m), vals[0].t()).transpose(1, 2)
+            out.transpose(1, 2).index_put_((b, m), vals[0].t())  # out is grid_sample's fresh result
         self.out = out if self.bad is None else torch.where(self.bad.unsqueeze(1), float("nan"), out)
 
     def backward(self, g: Tensor, need_tex: bool, need_uv: bool,
