@@ -79,8 +79,8 @@ def pyramid_adjoint(grads: list[Tensor | None], base_hw: tuple[int, int], *, inp
 
     Folds coarse to fine: level k gets its own gradient plus the transpose of
     the step k -> k+1 applied to level k+1's total. ``base_hw``: level 0's
-    size. ``inplace``: add into the given gradient buffers (the caller owns
-    them; first order only), else out of place and differentiably.
+    size. ``inplace``: add into (and scale) the given gradient buffers (the
+    caller owns them; first order only), else out of place and differentiably.
     """
     acc = None
     for k in range(len(grads) - 1, -1, -1):
@@ -102,8 +102,8 @@ def step_adjoint(fine: Tensor | None, coarse: Tensor, fine_hw: tuple[int, int], 
         return adj if fine is None else (fine.add_(adj) if inplace else fine + adj)
     if fine is None:
         # Nearest 2x upsampling: 1.7x faster on CPU than a broadcast copy
-        # (measured, 512^2 -> 1024^2).
-        return F.interpolate(coarse * 0.25, size=(H, W), mode="nearest")
+        # (measured, 512^2 -> 1024^2); in place, the 1/4 needs no new buffer.
+        return F.interpolate(coarse.mul_(0.25) if inplace else coarse * 0.25, size=(H, W), mode="nearest")
     # One broadcast add over the fine gradient: faster on CPU than nearest
     # upsampling followed by an add, and no upsampled copy (measured).
     f6 = fine.unflatten(-1, (w, 2)).unflatten(-3, (h, 2))
