@@ -156,7 +156,7 @@ def _down_axis(x: Tensor, dim: int) -> Tensor:
     return (picked.unflatten(-2, (m, 3)) * w.unsqueeze(-1)).sum(-2)
 
 
-def _build(texture: Tensor, n: int) -> list[Tensor]:
+def build_levels(texture: Tensor, n: int) -> list[Tensor]:
     """Levels 0 .. n-1 of ``texture``: runs of even x even steps as one ``_EvenChain``, other steps axis by axis."""
     levels = [texture]
     while len(levels) < n:
@@ -257,7 +257,7 @@ def mipmap(texture: Tensor | Sequence[Tensor] | Mipmap, *, max_levels: int | Non
     n = level_count(H, W)
     if max_levels is not None:
         n = min(n, max_levels)
-    return Mipmap(_build(texture, n))
+    return Mipmap(build_levels(texture, n))
 
 
 def _from_levels(levels: list[Tensor], max_levels: int | None) -> Mipmap:

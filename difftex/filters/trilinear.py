@@ -25,7 +25,7 @@ from typing import Callable, Sequence, Union
 import torch
 from torch import Tensor
 
-from ..mipmap import _build, level_size, mipmap, pyramid_adjoint, step_adjoint
+from ..mipmap import build_levels, level_size, mipmap, pyramid_adjoint, step_adjoint
 from . import basic
 from .basic import separable_backward, separable_sample
 from .fast import FastSample
@@ -79,7 +79,7 @@ class _PyramidRead(torch.autograd.Function):
                 border: float) -> Tensor:
         ctx.save_for_backward(texture, uv)
         ctx.args = (used, sizes, wrap_u, wrap_v, border)
-        levels = _build(texture, used[-1] + 1)
+        levels = build_levels(texture, used[-1] + 1)
         ctx.reads = [FastSample(levels[k], chunk.unsqueeze(0), "linear", wrap_u, wrap_v, border,
                                 tex_grad=ctx.needs_input_grad[0]) for k, chunk in zip(used, uv.split(sizes))]
         parts = [r.out[0] for r in ctx.reads]
