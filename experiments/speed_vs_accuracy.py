@@ -392,16 +392,19 @@ def spot_scene(dist: float, direction, res: int, ss_rates=(2, 4, 8)) -> Scene:
     return Scene(f"spot-{dist:g}", tex, wrap, uv, dx, dy, uv_ss, ref, _full_coverage(masks, mask1))
 
 
-def build_scenes(res: int, which: str = "all") -> list[Scene]:
-    """Every scene of the experiment (``which``: "all", "plane", "sphere" or "spot")."""
+def build_scenes(res: int, which: str = "all", ss_rates=(2, 4, 8)) -> list[Scene]:
+    """Every scene of the experiment (``which``: "all", "plane", "sphere" or "spot").
+
+    ``ss_rates``: the supersampled uv the peers need (none for difftex's filters alone).
+    """
     scenes: list[Scene] = []
     if which in ("all", "plane"):
         for kind in ("checker", "spot"):
-            scenes += [plane_scene(p, kind, res) for p in PITCHES]
+            scenes += [plane_scene(p, kind, res, ss_rates) for p in PITCHES]
     if which in ("all", "sphere"):
-        scenes += [sphere_scene(m, res) for m in SPHERE_MINIFICATION]
+        scenes += [sphere_scene(m, res, ss_rates) for m in SPHERE_MINIFICATION]
     if which in ("all", "spot"):
-        scenes += [spot_scene(d, e, res) for d, e in SPOT_VIEWS]
+        scenes += [spot_scene(d, e, res, ss_rates) for d, e in SPOT_VIEWS]
     return scenes
 
 
