@@ -187,7 +187,7 @@ def level(log2_len: Tensor, lod_bias: Tensor | float, levels: int) -> Tensor:
 
 
 def _size_and_levels(texture_size: object) -> tuple[int, int, int | None]:
-    from .mipmap import Mipmap, level_count
+    from .mipmap import Mipmap
     if isinstance(texture_size, Mipmap):
         H, W = texture_size.shape[-2:]
         return H, W, len(texture_size)

@@ -22,7 +22,6 @@ to its 2 x 2 block, folded coarse to fine), itself differentiable.
 """
 from __future__ import annotations
 
-import math
 from functools import lru_cache
 from typing import Iterator, Sequence
 

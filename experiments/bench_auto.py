@@ -111,7 +111,7 @@ def main() -> None:
             for r in range(args.repeats + 1):
                 for name, kw in FILTERS:
                     t0 = time.perf_counter()
-                    out = lookup(scene, **kw)
+                    lookup(scene, **kw)
                     if r:
                         times[name].append((time.perf_counter() - t0) * 1e3)
             row = {name: (score(lookup(scene, **kw)), statistics.median(times[name]), taps(scene, name))

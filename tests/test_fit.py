@@ -3,9 +3,6 @@ import sys
 from pathlib import Path
 
 import pytest
-import torch
-
-import difftex
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "experiments"))
 import fit_texture  # noqa: E402

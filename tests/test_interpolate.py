@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from difftex import Fragments, camera, interpolate, rasterize
+from difftex import camera, interpolate, rasterize
 
 from _raster_helpers import DEVICES, icosphere, random_rotation
 

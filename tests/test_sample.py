@@ -1,6 +1,5 @@
 """difftex.sample with the single-level filters: values and gradients against
 grid_sample and kornia, gradcheck, wrap modes per axis, bad input, NaN."""
-import math
 
 import kornia
 import pytest

@@ -10,7 +10,6 @@ Bounds used throughout (docs/stability.md explains them):
   ``C * value range * max(H, W)`` (the steepest slope such a texture has);
 * errors against exact or 16x16-supersampled references as stated per test.
 """
-import math
 import sys
 from pathlib import Path
 

@@ -182,7 +182,6 @@ def ewa_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse
         [C, M]; NaN where uv is not finite. Differentiable in the levels, uv,
         the footprint (ellipse shape, level) and lod_bias.
     """
-    M = uv.shape[0]
     H, W = levels[0].shape[-2:]
     ok = torch.isfinite(uv).all(-1)
     uv_safe = torch.where(ok.unsqueeze(-1), uv, torch.zeros_like(uv))
