@@ -390,7 +390,7 @@ def test_degenerate_derivatives_give_finite_values_and_zero_gradients(filter):
         assert torch.isfinite(out).all(), b
 
 
-@pytest.mark.parametrize("filter", MIP)
+@pytest.mark.parametrize("filter", MIP + ("auto",))
 def test_nan_uv_poisons_only_its_pixel(filter):
     g = _gen(12)
     tex = torch.rand(1, 2, 16, 16, generator=g, requires_grad=True)
