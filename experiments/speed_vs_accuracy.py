@@ -296,9 +296,9 @@ def icosphere(subdivisions: int = 4) -> tuple[Tensor, Tensor]:
     return torch.tensor(m.vertices, dtype=torch.float32), torch.tensor(m.faces, dtype=torch.int64)
 
 
-def sphere_uv(mvp: Tensor, res: int, verts: Tensor, faces: Tensor,
+def sphere_uv(mvp: Tensor, res: int | tuple[int, int], verts: Tensor, faces: Tensor,
               derivatives: str = "analytic") -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Rasterize the sphere and map it: (uv, uv_dx, uv_dy, mask [1, 1, R, R]).
+    """Rasterize the sphere at ``res`` (R, or (rows, columns)) and map it: (uv, uv_dx, uv_dy, mask [1, 1, R, R]).
 
     ``derivatives="analytic"`` chains the interpolated position derivatives
     through spherical_uv's Jacobian (continuous across the atan2 seam);
@@ -307,7 +307,7 @@ def sphere_uv(mvp: Tensor, res: int, verts: Tensor, faces: Tensor,
     (stability.py shows the difference).
     """
     pos = camera.transform(verts, mvp.unsqueeze(0))
-    frags = difftex.rasterize(pos, faces, (res, res))
+    frags = difftex.rasterize(pos, faces, (res, res) if isinstance(res, int) else tuple(res))
     p, pdx, pdy = difftex.interpolate(verts, faces, frags, derivatives=True)
     uv, dx, dy = difftex.spherical_uv(p, points_dx=pdx, points_dy=pdy)
     mask = frags.mask.unsqueeze(1)
