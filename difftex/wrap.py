@@ -62,7 +62,9 @@ def floor_index(x: Tensor) -> Tensor:
     2**52 a float has no fractional part left, so capping loses nothing.
     """
     i = torch.nan_to_num(torch.floor(x), nan=0.0, posinf=0.0, neginf=0.0)
-    return i.clamp_(-(2.0 ** 52), 2.0 ** 52).long()
+    # float16 / bfloat16 cannot hold 2**52; their finite values are all below it.
+    cap = min(2.0 ** 52, torch.finfo(x.dtype).max)
+    return i.clamp_(-cap, cap).long()
 
 
 def wrap_index(i: Tensor, n: int, mode: str) -> tuple[Tensor, Tensor | None]:

@@ -8,6 +8,7 @@ import torch.nn.functional as F
 
 import difftex
 from difftex.filters import basic
+from difftex.sample import FILTERS, MIP_FILTERS
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 GS_MODE = {"nearest": "nearest", "bilinear": "bilinear", "bicubic": "bicubic"}
@@ -336,3 +337,19 @@ def test_fast_path_large_texture_few_points(filt, monkeypatch):
     uv = torch.stack((u.to(torch.float64), v.to(torch.float64)), -1).view(2, 3, 6, 2)
     uv = torch.cat((uv, uv.flip(-1)), 2)  # the same edges along v
     _assert_impls_agree(filt, tex, uv, monkeypatch)
+
+
+@pytest.mark.parametrize("filter", FILTERS)
+def test_float16_runs_every_filter(filter):
+    # Regression: the gather's index cap (2**52) overflowed float16, and the
+    # fast path hands a large texture's edge points to the gather.
+    g = torch.Generator().manual_seed(0)
+    tex = torch.rand(1, 3, 64, 48, generator=g).half()
+    uv = (torch.rand(1, 3, 5, 2, generator=g) * 3 - 1).half()
+    d = (torch.randn(1, 3, 5, 2, generator=g) * 0.1).half()
+    kw = {"uv_dx": d, "uv_dy": d * 0.3} if filter in MIP_FILTERS else {}
+    out = difftex.sample(tex, uv, filter=filter, wrap=("repeat", "border"), **kw)
+    ref = difftex.sample(tex.double(), uv.double(), filter=filter, wrap=("repeat", "border"),
+                         **{k: v.double() for k, v in kw.items()})
+    assert out.dtype == torch.float16
+    torch.testing.assert_close(out.double(), ref, atol=0.02, rtol=0)
