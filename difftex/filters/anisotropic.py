@@ -7,9 +7,9 @@ trilinear taps spread evenly over the major axis, at offsets
 ``((i + 1/2) / N - 1/2) * major`` for ``i = 0 .. N-1``, each at level
 ``log2(major / N) + lod_bias`` and weight ``1 / N``.
 
-Taps are variable per point and flattened into one list (point, tap), so a
-point that needs one tap costs one trilinear tap; all taps go through one
-``trilinear_points`` call and are summed back with one ``index_add``.
+Taps are variable per point: a point that needs one tap costs one trilinear
+tap. All go through one ``trilinear_points`` call (one pass of the native
+kernel on the CPU; flattened into one (point, tap) list on the torch path).
 """
 from __future__ import annotations
 
@@ -59,7 +59,6 @@ def anisotropic_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell:
         level and the tap positions; N itself is piecewise constant) and
         lod_bias.
     """
-    M = uv.shape[0]
     H, W = levels[0].shape[-2:]
     n = tap_count(ell, fp, max_aniso) if taps is None else taps
     nf = n.to(uv.dtype)
@@ -69,12 +68,4 @@ def anisotropic_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell:
     # Major axis as a uv vector: direction * length in texels / texture size.
     scale = torch.exp2(fp.log2_scale).unsqueeze(-1)
     axis = ell.direction * (ell.major.unsqueeze(-1) * scale) / uv.new_tensor([float(W), float(H)])
-    point = torch.repeat_interleave(torch.arange(M, device=uv.device), n)
-    start = torch.cumsum(n, 0) - n
-    # index_select: several times faster than advanced indexing on CPU.
-    i = torch.arange(point.numel(), device=uv.device) - start.index_select(0, point)
-    nt = nf.index_select(0, point)
-    offset = ((i.to(uv.dtype) + 0.5) / nt - 0.5).unsqueeze(-1)
-    taps = torch.addcmul(uv.index_select(0, point), axis.index_select(0, point), offset)
-    vals = trilinear_points(levels, taps, D.index_select(0, point), wrap_u, wrap_v, border)
-    return uv.new_zeros((vals.shape[0], M)).index_add(1, point, vals / nt)
+    return trilinear_points(levels, uv, D, wrap_u, wrap_v, border, axis=axis, count=n)

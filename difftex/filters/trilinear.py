@@ -25,6 +25,7 @@ from typing import Callable, Sequence, Union
 import torch
 from torch import Tensor
 
+from .. import native
 from ..mipmap import build_levels, level_size, mipmap, pyramid_adjoint, step_adjoint
 from . import basic
 from .basic import separable_backward, separable_sample
@@ -124,6 +125,55 @@ class _PyramidRead(torch.autograd.Function):
         return grad_tex, grad_uv, None, None, None, None, None
 
 
+class _NativeTaps(torch.autograd.Function):
+    """``trilinear_points`` on the native CPU kernel (``difftex.native``).
+
+    uv [M, 2], D [M], axis [M, 2] and count [M] int64 (or both None: one tap
+    a point), levels ``[1, C, H_k, W_k]`` -> [C, M].
+    """
+
+    @staticmethod
+    def forward(ctx, uv: Tensor, D: Tensor, axis: Tensor | None, count: Tensor | None, opts: tuple,
+                *levels: Tensor) -> Tensor:
+        wrap_u, wrap_v, border, nearest = opts
+        # mip_blend reads the upper level at integer D too where D needs a gradient.
+        ctx.d_grad = ctx.needs_input_grad[1]
+        ctx.opts = opts
+        ctx.taps = axis is not None
+        ctx.save_for_backward(uv, D, axis, count, *levels)
+        return native.load().forward(*_native_args(levels, uv, D, axis, count), native.WRAP_CODES[wrap_u],
+                                     native.WRAP_CODES[wrap_v], border, nearest, ctx.d_grad)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        uv, D, axis, count, *levels = ctx.saved_tensors
+        wrap_u, wrap_v, border, nearest = ctx.opts
+        need = ctx.needs_input_grad
+        need_uv, need_D, need_axis, need_levels = need[0], need[1] and not nearest, need[2], need[5:]
+        if torch.is_grad_enabled():
+            # Double backward (create_graph=True): the differentiable torch path.
+            inputs = [(i, t) for i, t in enumerate((uv, D, axis, None, None, *levels)) if need[i] and t is not None]
+            with torch.enable_grad():
+                out = _torch_taps(levels, uv, D, wrap_u, wrap_v, border, nearest, axis, count)
+            got = torch.autograd.grad(out, [t for _, t in inputs], grad, create_graph=True, allow_unused=True)
+            full: list[Tensor | None] = [None] * (5 + len(levels))
+            for (i, _), g in zip(inputs, got):
+                full[i] = g
+            return tuple(full)
+        gl, guv, gD, gax = native.load().backward(
+            *_native_args(levels, uv, D, axis, count), grad, native.WRAP_CODES[wrap_u], native.WRAP_CODES[wrap_v],
+            border, nearest, ctx.d_grad, any(need_levels), need_uv, need_D, need_axis and ctx.taps)
+        return (guv, gD if need_D else None, gax if need_axis and ctx.taps else None, None, None,
+                *(g.unsqueeze(0) if g is not None and n else None for g, n in zip(gl, need_levels)))
+
+
+def _native_args(levels, uv: Tensor, D: Tensor, axis: Tensor | None, count: Tensor | None) -> tuple:
+    """The kernel's (levels [C, h, w], uv, D, axis, count) arguments: contiguous, empty for no taps."""
+    none = uv.new_empty(0)
+    return ([lv[0].contiguous() for lv in levels], uv.contiguous(), D.contiguous(),
+            none if axis is None else axis.contiguous(), none.long() if count is None else count.contiguous())
+
+
 def mip_blend(D: Tensor, levels: int, inputs: Sequence[Tensor], read: Reader, *, nearest: bool = False) -> Tensor:
     """Blend per-level results at ``floor(D)`` and ``floor(D) + 1``, each level read once for its points.
 
@@ -193,8 +243,8 @@ def mip_blend(D: Tensor, levels: int, inputs: Sequence[Tensor], read: Reader, *,
 
 
 def trilinear_points(levels: Levels, uv: Tensor, D: Tensor, wrap_u: str, wrap_v: str, border: float, *,
-                     nearest_mip: bool = False) -> Tensor:
-    """Trilinear taps of one texture.
+                     nearest_mip: bool = False, axis: Tensor | None = None, count: Tensor | None = None) -> Tensor:
+    """Trilinear taps of one texture: one a point, or ``count`` spread along ``axis`` (the anisotropic filter).
 
     Args:
         levels: the pyramid of one texture, ``[1, C, H_k, W_k]`` each, or a
@@ -203,11 +253,37 @@ def trilinear_points(levels: Levels, uv: Tensor, D: Tensor, wrap_u: str, wrap_v:
         D: [M] clamped level per point.
         wrap_u, wrap_v, border: as in ``separable_sample``.
         nearest_mip: bilinear at the nearest level instead of blending two.
+        axis, count: optional [M, 2] uv vector and [M] int64 (>= 1): point
+            m averages ``count[m]`` taps at ``uv + ((i + 1/2) / count - 1/2)
+            * axis``, i = 0 .. count - 1, all at level ``D[m]``.
 
     Returns:
-        [C, M]. Differentiable in every level (or the texture), uv and D
-        (D: trilinear only).
+        [C, M]. Differentiable in every level (or the texture), uv, D
+        (trilinear only) and axis.
+
+    On the CPU this runs the native kernel (``difftex.native``) where it is
+    built, else (and on CUDA, and as the tests' reference) the torch path.
     """
+    if basic.IMPL == "fast" and native.usable(uv):
+        lv = build_levels(levels.texture, len(levels)) if isinstance(levels, TexturePyramid) else list(levels)
+        return _NativeTaps.apply(uv, D, axis, count, (wrap_u, wrap_v, float(border), nearest_mip), *lv)
+    return _torch_taps(levels, uv, D, wrap_u, wrap_v, border, nearest_mip, axis, count)
+
+
+def _torch_taps(levels: Levels, uv: Tensor, D: Tensor, wrap_u: str, wrap_v: str, border: float, nearest_mip: bool,
+                axis: Tensor | None, count: Tensor | None) -> Tensor:
+    """``trilinear_points`` in torch ops: the taps flattened into one list (point, tap), one ``mip_blend``."""
+    if count is not None:
+        M = uv.shape[0]
+        point = torch.repeat_interleave(torch.arange(M, device=uv.device), count)
+        start = torch.cumsum(count, 0) - count
+        # index_select: several times faster than advanced indexing on CPU.
+        i = torch.arange(point.numel(), device=uv.device) - start.index_select(0, point)
+        nt = count.to(uv.dtype).index_select(0, point)
+        offset = ((i.to(uv.dtype) + 0.5) / nt - 0.5).unsqueeze(-1)
+        taps = torch.addcmul(uv.index_select(0, point), axis.index_select(0, point), offset)
+        vals = _torch_taps(levels, taps, D.index_select(0, point), wrap_u, wrap_v, border, nearest_mip, None, None)
+        return uv.new_zeros((vals.shape[0], M)).index_add(1, point, vals / nt)
     if isinstance(levels, TexturePyramid):
         tex = levels.texture
         if basic.IMPL == "fast" and torch.is_grad_enabled() and (tex.requires_grad or uv.requires_grad):

@@ -1,0 +1,66 @@
+"""The native CPU kernel of the mip reads (``csrc/mip_read.cpp``): built on first use, optional.
+
+The trilinear and nearest-mip reads of a pyramid (the tap of the trilinear,
+anisotropic and auto filters) are one pass over the points in C++ on the
+CPU: no sorting of points by level, no per-level passes, and a backward
+that touches only the texels read. The torch path (``mip_blend`` over
+grid_sample, ``filters/trilinear.py``) stays the reference the tests compare
+it with, and runs wherever this kernel does not: on CUDA, for double
+backward, with ``DIFFTEX_NATIVE=0`` in the environment, or where the build
+fails (no C++ compiler or ninja), which is reported once as a warning.
+
+The first use compiles the kernel with ``torch.utils.cpp_extension.load``
+(about 30-60 s; cached by torch in ``TORCH_EXTENSIONS_DIR``, by default
+``~/.cache/torch_extensions``, and reused while the source is unchanged).
+"""
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+from pathlib import Path
+from types import ModuleType
+
+import torch
+from torch import Tensor
+
+WRAP_CODES = {"repeat": 0, "clamp": 1, "mirror": 2, "border": 3}
+
+_SOURCE = Path(__file__).with_name("csrc") / "mip_read.cpp"
+_NAME = "difftex_mip_read"
+_module: ModuleType | None = None
+_tried = False
+
+
+def enabled() -> bool:
+    """Whether the native kernel is wanted (``DIFFTEX_NATIVE`` is not ``0``)."""
+    return os.environ.get("DIFFTEX_NATIVE", "1") != "0"
+
+
+def usable(like: Tensor) -> bool:
+    """Whether the kernel serves points like ``like``: a float32 / float64 CPU tensor, kernel built."""
+    return not like.is_cuda and like.dtype in (torch.float32, torch.float64) and load() is not None
+
+
+def load() -> ModuleType | None:
+    """The compiled kernel module, building it on the first call; None where disabled or the build failed."""
+    global _module, _tried
+    if _tried or not enabled():
+        return _module if enabled() else None
+    _tried = True
+    try:
+        from torch.utils import cpp_extension
+        try:
+            built = any(Path(cpp_extension._get_build_directory(_NAME, False)).glob(f"{_NAME}*.so"))
+        except Exception:  # a private helper: if it moves, just say so every time
+            built = False
+        if not built:
+            print("difftex: building the native CPU kernel (first use only, about a minute; "
+                  "DIFFTEX_NATIVE=0 skips it)...", file=sys.stderr, flush=True)
+        _module = cpp_extension.load(name=_NAME, sources=[str(_SOURCE)], extra_cflags=["-O3"], verbose=False)
+    except Exception as exc:  # no compiler, no ninja, a failed build: the torch path serves
+        warnings.warn(f"difftex: native CPU kernel unavailable, using the torch path ({type(exc).__name__}: "
+                      f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else exc})", RuntimeWarning,
+                      stacklevel=2)
+        _module = None
+    return _module
