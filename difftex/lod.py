@@ -275,7 +275,7 @@ def levels_needed(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Te
     """
     from ._checks import broadcast_batch, check_float, check_same
     from .mipmap import level_count
-    from .sample import DEFAULT_TOLERANCE, FILTERS, MIP_FILTERS, _check_number
+    from .sample import DEFAULT_TOLERANCE, FILTERS, MIP_FILTERS, _check_number, _levels_read
     from .filters.anisotropic import tap_count
     from .filters.auto import auto_tap_count
     check_float("uv_dx", uv_dx, 4, last=2, shape_doc="[B, Ho, Wo, 2]")
@@ -323,9 +323,7 @@ def levels_needed(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Te
                 n = (tap_count(ell, fp, max_aniso) if filter == "anisotropic"
                      else auto_tap_count(ell, fp, bias, max_aniso, tolerance))
                 log2_len = ell.log2_major - torch.log2(n.to(dx.dtype))
-        D = level(log2_len, bias, full)
-        top = torch.floor(D + 0.5) if filter == "nearest-mip" else torch.ceil(D)
-        need = int(top.max().item()) + 1
+        need = _levels_read(log2_len, bias, full, filter == "nearest-mip")
     if filter == "ewa":
         need += 1  # never let a truncated top stand in for the real coarsest level
     return min(need, full)

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from ._checks import broadcast_batch, check_float, check_same, describe
-from .filters.anisotropic import anisotropic_points
+from .filters.anisotropic import anisotropic_points, tap_count
 from .filters.auto import auto_tap_count
 from .filters.basic import separable_sample
 from .filters.ewa import ewa_points
@@ -137,6 +137,28 @@ def sample(
     return out.view(B, C, Ho, Wo)
 
 
+def _levels_read(log2_len: Tensor, bias: Union[float, Tensor], full: int, nearest: bool) -> int:
+    """How many pyramid levels the bilinear-tap filters read at these level lengths (<= ``full``).
+
+    The coarsest is round(D) for nearest-mip, else ceil(D), or floor(D) + 1
+    where D > 0 needs a gradient (``mip_blend`` then reads the upper level at
+    an integer D too, for d/dD).
+    """
+    if log2_len.numel() == 0:
+        return 1
+    b = bias.detach() if isinstance(bias, Tensor) else bias
+    grad = log2_len.requires_grad or (isinstance(bias, Tensor) and bias.requires_grad)
+    with torch.no_grad():
+        D = level(log2_len.detach(), b, full)
+        if nearest:
+            top = torch.floor(D + 0.5)
+        elif grad:
+            top = (torch.floor(D) + 1) * (D > 0).to(D.dtype)
+        else:
+            top = torch.ceil(D)
+        return min(int(top.max().item()) + 1, full)
+
+
 def _check_number(name: str, value: object, minimum: float) -> float:
     """A finite real >= minimum, as float; TypeError / ValueError naming ``name`` otherwise."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
@@ -183,10 +205,10 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
                 wrap_u: str, wrap_v: str, border: float) -> Tensor:
     """The mip filters on flat point lists; one pass per texture of the batch.
 
-    A plain texture's pyramid is built only as deep as needed ("auto": the
-    levels its footprints read; the same values as the full chain): by the
-    reading node of the bilinear-tap filters (``TexturePyramid``), here for
-    EWA.
+    A plain texture's pyramid is built only as deep as its points read (the
+    same values and gradients as the full chain; a view that only magnifies
+    builds none): by the reading node of the bilinear-tap filters
+    (``TexturePyramid``), here for EWA, which reads the full chain.
     """
     base = pyramid.levels[0] if isinstance(pyramid, Mipmap) else pyramid
     Bt, C, H, W = base.shape
@@ -196,21 +218,19 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
     pts, dx, dy = flat(uv), flat(uv_dx), flat(uv_dy)
     if isinstance(bias, Tensor):
         bias = flat(bias) if bias.dim() == 3 else bias
+    taps = None
     if filter in ("trilinear", "nearest-mip"):
         log2_len = log2_length(dx, dy, H, W)
     else:
         fp = footprint(dx, dy, H, W)
         ell = ellipse(fp)
-    n_auto = auto_tap_count(ell, fp, bias, max_aniso, tolerance) if filter == "auto" else None
+        if filter != "ewa":
+            taps = (auto_tap_count(ell, fp, bias, max_aniso, tolerance) if filter == "auto"
+                    else tap_count(ell, fp, max_aniso))
+            log2_len = ell.log2_major - torch.log2(taps.to(dx.dtype))
+    full = level_count(H, W)
     if isinstance(pyramid, Tensor):
-        depth = None
-        if n_auto is not None and n_auto.numel():
-            with torch.no_grad():
-                b = bias.detach() if isinstance(bias, Tensor) else bias
-                D = level(ell.log2_major.detach() - torch.log2(n_auto.to(dx.dtype)), b, level_count(H, W))
-                # ceil(D) is the coarsest level read (floor(D) + 1 where D is fractional).
-                depth = int(D.max().ceil().item()) + 1
-        count = min(depth or level_count(H, W), level_count(H, W))
+        count = full if filter == "ewa" else _levels_read(log2_len, bias, full, filter == "nearest-mip")
         # EWA reads levels with its own gather; the bilinear-tap filters get
         # the texture and build its pyramid inside their reading node.
         levels = mipmap(pyramid, max_levels=count).levels if filter == "ewa" else None
@@ -224,10 +244,9 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
             return trilinear_points(lv, pts[sl], D, wrap_u, wrap_v, border, nearest_mip=filter == "nearest-mip")
         f = type(fp)(*(x[sl] for x in fp))
         e = type(ell)(*(x[sl] for x in ell))
-        if n_auto is not None:  # "auto" is the anisotropic filter with its own tap counts
-            return anisotropic_points(lv, pts[sl], f, e, b, max_aniso, wrap_u, wrap_v, border, taps=n_auto[sl])
-        fn = anisotropic_points if filter == "anisotropic" else ewa_points
-        return fn(lv, pts[sl], f, e, b, max_aniso, wrap_u, wrap_v, border)
+        if taps is not None:  # "auto" is the anisotropic filter with its own tap counts
+            return anisotropic_points(lv, pts[sl], f, e, b, max_aniso, wrap_u, wrap_v, border, taps=taps[sl])
+        return ewa_points(lv, pts[sl], f, e, b, max_aniso, wrap_u, wrap_v, border)
 
     def levels_of(i: int | None) -> Levels:
         if levels is None:

@@ -474,6 +474,31 @@ def test_texture_and_prebuilt_mipmap_give_the_same_gradients(filter, hw):
             torch.testing.assert_close(a, b, atol=tol, rtol=tol)
 
 
+@pytest.mark.parametrize("filter", ["trilinear", "nearest-mip", "anisotropic", "auto"])
+@pytest.mark.parametrize("L", [0.5, 4.0, 5.0])
+def test_a_plain_texture_builds_only_the_levels_its_points_read(filter, L, monkeypatch):
+    # Footprints of L texels everywhere: magnified (0.5) builds level 0 only; an exact
+    # level 2 (4.0) builds levels 0-2 for values but 0-3 when D needs a gradient (the
+    # upper level gives d/dD there); level log2(5) builds 0-3. Values and the gradients
+    # of texture, uv and derivatives equal those of the full prebuilt chain.
+    built = []
+    real = trilinear_mod.build_levels
+    monkeypatch.setattr(trilinear_mod, "build_levels", lambda t, n: built.append(n) or real(t, n))
+    tex = torch.rand(1, 2, 64, 64, dtype=f64, generator=_gen(3))
+    uv = torch.rand(1, 4, 5, 2, dtype=f64, generator=_gen(4))
+    dx, dy = _iso(1, 4, 5, L, 64, 64, 0.4)  # isotropic: anisotropic takes one tap at log2 L
+    results = []
+    for texture in ("plain", "prebuilt"):
+        t, u, ddx, ddy = (x.clone().requires_grad_(True) for x in (tex, uv, dx, dy))
+        out = difftex.sample(t if texture == "plain" else mipmap(t), u, filter=filter, uv_dx=ddx, uv_dy=ddy)
+        out.pow(2).sum().backward()
+        results.append([out.detach(), t.grad, u.grad, ddx.grad, ddy.grad])
+    expected = {0.5: 1, 4.0: 3, 5.0: 3} if filter == "nearest-mip" else {0.5: 1, 4.0: 4, 5.0: 4}
+    assert built[0] == expected[L]
+    for a, b in zip(*results):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+
+
 def test_user_supplied_levels_each_get_their_gradient():
     g = _gen(14)
     levels = [torch.rand(1, 1, 8, 8, dtype=f64, generator=g, requires_grad=True),
