@@ -47,7 +47,8 @@ def sample(
         texture: [B, C, H, W] float tensor, or a Mipmap (``difftex.mipmap``);
             B = 1 broadcasts over the uv batch. The single-level filters read
             a Mipmap's level 0; the mip filters build the pyramid of a plain
-            tensor on the fly (differentiably).
+            tensor on the fly (differentiably; trilinear, nearest-mip,
+            anisotropic and auto only as deep as the points read).
         uv: [B, Ho, Wo, 2]; (0, 0) is the top-left corner of texel (0, 0),
             (1, 1) the bottom-right corner of the last texel; u runs along the
             width, v along the rows (DESIGN.md). ``grid_sample`` with

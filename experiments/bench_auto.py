@@ -57,8 +57,7 @@ with 0 auto equals anisotropic wherever the minor axis is at least half a texel.
 * Within 0.5 dB of anisotropic 16 on every scene above (worst -0.33 dB, the 5-degree spot plane), never
   more taps. On these scenes that leaves little to save: anisotropic's taps are nearly all needed for its
   accuracy, so auto takes 0-3 % fewer taps and its time is anisotropic's within this machine's noise
-  (forward+backward in speed_vs_accuracy.py's run with the native kernel: median 1.00x, 0.95-1.05x, except
-  0.72x on the magnified sphere, where auto builds only level 0 of the pyramid). It saves where footprints are magnified below half a texel (one read instead of anisotropic's two) or round:
+  (forward+backward in speed_vs_accuracy.py's run: median 1.00x, 0.95-1.10x). It saves where footprints are magnified below half a texel (one read instead of anisotropic's two) or round:
   on a sphere magnified 4x (not in the table) auto reads half of anisotropic's taps, 56.7 vs 64.3 dB.
 * What the first version gave away: with tolerance 0.25 it took 7-10 % fewer taps on grazing planes but
   fell 2.1 dB under anisotropic 16 on the closed-form checker plane at 5 degrees (1.2 dB on the spot
@@ -75,8 +74,8 @@ with 0 auto equals anisotropic wherever the minor axis is at least half a texel.
   anisotropic takes two, saves 6-7 % of the taps at tolerance 0.1 but loses up to 0.8 dB; not kept.
 * "Brilinear" taps (snapping each tap's level to an integer within a band, one bilinear read instead of
   two) were tried and dropped: -0.2 to -1.2 dB for at most ~10 % time on these scenes.
-* A plain texture tensor given to `filter="auto"` builds only the pyramid levels the footprints read
-  (`difftex.levels_needed`), with identical values.
+* A plain texture tensor given to any bilinear-tap mip filter (auto included) builds only the pyramid
+  levels the footprints read (`difftex.levels_needed` gives the count), with identical values and gradients.
 """
 
 
