@@ -62,9 +62,11 @@ def test_disabled_or_failed_build_falls_back_to_the_torch_path(monkeypatch):
     torch.testing.assert_close(out, ref, atol=1e-12, rtol=0)
 
 
-def test_half_precision_and_cuda_are_not_the_kernels():
+def test_float16_and_cuda_points_take_the_torch_path():
     tex, uv, dx, dy = _case(torch.float16)
     assert not native.usable(uv)
+    if torch.cuda.is_available():
+        assert not native.usable(uv.float().cuda())
     out = difftex.sample(tex, uv, filter="trilinear", uv_dx=dx, uv_dy=dy)
     ref = difftex.sample(tex.double(), uv.double(), filter="trilinear", uv_dx=dx.double(), uv_dy=dy.double())
     assert out.dtype == torch.float16
