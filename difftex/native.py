@@ -1,9 +1,10 @@
-"""The native CPU kernel of the mip reads (``csrc/mip_read.cpp``): built on first use, optional.
+"""The native CPU kernel of the mip taps (``csrc/mip_read.cpp``): built on first use, optional.
 
-The trilinear and nearest-mip reads of a pyramid (the tap of the trilinear,
-anisotropic and auto filters) are one pass over the points in C++ on the
-CPU: no sorting of points by level, no per-level passes, and a backward
-that touches only the texels read. The torch path (``mip_blend`` over
+The trilinear / nearest-mip taps of a pyramid, one a point or N along the
+footprint's major axis (the trilinear, nearest-mip, anisotropic and auto
+filters), are one pass over the points in C++ on the CPU: no tap list, no
+sorting of points by level, no per-level passes, and a backward that
+touches only the texels read. The torch path (``mip_blend`` over
 grid_sample, ``filters/trilinear.py``) stays the reference the tests compare
 it with, and runs wherever this kernel does not: on CUDA, for double
 backward, with ``DIFFTEX_NATIVE=0`` in the environment, or where the build
@@ -57,7 +58,8 @@ def load() -> ModuleType | None:
         if not built:
             print("difftex: building the native CPU kernel (first use only, about a minute; "
                   "DIFFTEX_NATIVE=0 skips it)...", file=sys.stderr, flush=True)
-        _module = cpp_extension.load(name=_NAME, sources=[str(_SOURCE)], extra_cflags=["-O3"], verbose=False)
+        flags = ["/O2"] if os.name == "nt" else ["-O3"]  # MSVC spells it differently
+        _module = cpp_extension.load(name=_NAME, sources=[str(_SOURCE)], extra_cflags=flags, verbose=False)
     except Exception as exc:  # no compiler, no ninja, a failed build: the torch path serves
         warnings.warn(f"difftex: native CPU kernel unavailable, using the torch path ({type(exc).__name__}: "
                       f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else exc})", RuntimeWarning,
