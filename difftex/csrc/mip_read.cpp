@@ -29,9 +29,9 @@ namespace {
 
 enum Wrap { REPEAT = 0, CLAMP = 1, MIRROR = 2, BORDER = 3 };
 
-// floor(x) for finite x, through an integer truncation: std::floor is a
-// library call without SSE4.1 and was most of the kernel's time. Capped at
-// +-2^52, where no fraction is left anyway.
+// floor(x) through an integer truncation (std::floor is a library call
+// without SSE4.1, a truncation two instructions). Capped at +-2^52, where
+// no fraction is left anyway; NaN gives -2^52 (callers test finiteness).
 inline double floor_capped(double x) {
   const double cap = 4503599627370496.0;
   if (!(x > -cap)) return -cap;
