@@ -62,6 +62,18 @@ def _backward(fn, clear) -> None:
     fn().sum().backward()
 
 
+def _torch_path(fn):
+    """``fn`` run with difftex's native CPU kernel switched off (as ``DIFFTEX_NATIVE=0`` does)."""
+    def run():
+        real = difftex.native.load
+        difftex.native.load = lambda: None
+        try:
+            return fn()
+        finally:
+            difftex.native.load = real
+    return run
+
+
 def _grid_sample_repeat(tex: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """grid_sample bilinear with exact repeat: 1-texel circular pad + folded uv."""
     H, W = tex.shape[-2:]
@@ -115,6 +127,12 @@ def main() -> None:
         label = f"difftex {name}" + (f", max_aniso {kw['max_aniso']}" if kw else "")
         rows.append((label, lambda name=name, kw=kw: difftex.sample(tex, uv, filter=name, uv_dx=dx, uv_dy=dy, **kw)))
 
+    # The same filters with the native CPU kernel off (difftex.native): the torch path.
+    for name, kw in (("trilinear", {}), ("anisotropic", {"max_aniso": 2})):
+        label = f"difftex {name}" + (f", max_aniso {kw['max_aniso']}" if kw else "") + ", torch path (no native kernel)"
+        rows.append((label, _torch_path(lambda name=name, kw=kw: difftex.sample(tex, uv, filter=name, uv_dx=dx,
+                                                                                uv_dy=dy, **kw))))
+
     mm = difftex.mipmap(tex0).levels
     levels = [lv.clone().requires_grad_(True) for lv in mm]
     rows.insert(6, ("difftex trilinear, prebuilt Mipmap (gradient to its levels)",
@@ -156,7 +174,8 @@ def main() -> None:
         f"Medians of {args.repeats} runs (EWA and 8x8: {max(3, args.repeats // 3)}), "
         f"{torch.get_num_threads()} thread(s), torch {torch.__version__}, {platform.processor() or platform.machine()}, "
         f"{os.cpu_count()} CPUs. Forward+backward: gradients to texture and uv (mip filters: the pyramid is "
-        "built from the texture inside the timed region, except the prebuilt-Mipmap row). Each row is timed "
+        "built from the texture inside the timed region, except the prebuilt-Mipmap row; the mip filters run "
+        "difftex's native CPU kernel except in the torch-path rows). Each row is timed "
         "alternately with grid_sample bilinear (no supersampling, uv folded into [0, 1) beforehand); the "
         "ratio is the median of the per-pair ratios, and the last columns give grid_sample's own medians "
         "during that row, which show the machine's load drift.",
@@ -174,8 +193,14 @@ def main() -> None:
     ss4 = named["grid_sample bilinear, 4x4 supersampled"]
     trilinear = named["difftex trilinear"]
     lines += ["", "Head to head, each pair timed alternately (medians of the per-pair ratios):", ""]
-    for label, fn, peer_label, peer in (("trilinear", trilinear, "grid_sample bilinear", gs),
-                                        ("anisotropic max_aniso 2", aniso2, "grid_sample 4x4 supersampled", ss4)):
+    for label, fn, peer_label, peer in (
+            ("trilinear", trilinear, "grid_sample bilinear", gs),
+            ("trilinear, torch path", named["difftex trilinear, torch path (no native kernel)"],
+             "grid_sample bilinear", gs),
+            ("anisotropic max_aniso 2", aniso2, "grid_sample 4x4 supersampled", ss4),
+            ("anisotropic max_aniso 2, torch path",
+             named["difftex anisotropic, max_aniso 2, torch path (no native kernel)"], "grid_sample 4x4 supersampled",
+             ss4)):
         ratios = []
         for wrap in (lambda f: (lambda: _no_grad(f)), lambda f: (lambda: _backward(f, clear))):
             ratios.append(_timed_pair(wrap(fn), wrap(peer), args.repeats)[2])
