@@ -1,8 +1,12 @@
 """Trilinear (and nearest-mip) filtering: the bilinear tap of two adjacent mip levels, blended.
 
-This is the *trilinear tap* that the anisotropic filter calls once per
-probe, and ``mip_blend``, its level grouping and blend, is shared with the
-EWA filter. Work is proportional to the points a level serves: points are
+This is the *trilinear tap* that the anisotropic filter calls (N taps along
+the major axis per point), and ``mip_blend``, its level grouping and blend,
+is shared with the EWA filter. On the CPU ``trilinear_points`` runs the
+native kernel (``difftex.native``: one pass over the points, taps and
+levels included). The torch path below serves CUDA, float16, double
+backward and machines without the kernel, and is the reference the tests
+compare the kernel with. Work is proportional to the points a level serves: points are
 sorted by level once, each level is read (with ``separable_sample``, the one
 bilinear of the package) only at the points that use it, and the results
 are put back in order with one ``index_add``. A point whose level is an
