@@ -86,3 +86,22 @@ def test_double_backward_through_the_kernel_uses_the_torch_path(filter):
         return difftex.sample(t, u, filter=filter, uv_dx=dx, uv_dy=dy, wrap="repeat")
 
     assert torch.autograd.gradgradcheck(f, (tex, uv), atol=1e-6, rtol=1e-5)
+
+
+@needs_kernel
+def test_threads_split_the_points_without_changing_the_result():
+    # The forward splits the points over torch's intra-op threads (chunks of 1024).
+    g = torch.Generator().manual_seed(1)
+    tex = torch.rand(1, 3, 64, 64, generator=g)
+    uv = torch.rand(1, 60, 90, 2, generator=g) * 3 - 1
+    dx = torch.randn(1, 60, 90, 2, generator=g) * 0.1
+    dy = torch.randn(1, 60, 90, 2, generator=g) * 0.02
+    threads = torch.get_num_threads()
+    try:
+        outs = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            outs.append(difftex.sample(tex, uv, filter="anisotropic", uv_dx=dx, uv_dy=dy))
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(outs[0], outs[1])
