@@ -245,7 +245,7 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
             return trilinear_points(lv, pts[sl], D, wrap_u, wrap_v, border, nearest_mip=filter == "nearest-mip")
         f = type(fp)(*(x[sl] for x in fp))
         e = type(ell)(*(x[sl] for x in ell))
-        if taps is not None:  # "auto" is the anisotropic filter with its own tap counts
+        if taps is not None:  # anisotropic, and auto: the anisotropic filter with its own tap counts
             return anisotropic_points(lv, pts[sl], f, e, b, max_aniso, wrap_u, wrap_v, border, taps=taps[sl])
         return ewa_points(lv, pts[sl], f, e, b, max_aniso, wrap_u, wrap_v, border)
 
