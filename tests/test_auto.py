@@ -216,23 +216,6 @@ def test_gradcheck(J, wrap):
     assert torch.autograd.gradcheck(fn, (tex, uv, dx, dy, bias), atol=1e-7)
 
 
-def test_batches_and_mipmap_input():
-    g = _gen(7)
-    tex = torch.rand(2, 3, 24, 40, dtype=f64, generator=g)
-    uv = torch.rand(2, 5, 6, 2, dtype=f64, generator=g) * 2
-    dx = torch.randn(1, 5, 6, 2, dtype=f64, generator=g) * 0.1
-    dy = torch.randn(2, 5, 6, 2, dtype=f64, generator=g) * 0.1
-    bias = torch.randn(2, 5, 6, dtype=f64, generator=g) * 0.3
-    kw = dict(filter="auto", wrap=("repeat", "mirror"), lod_bias=bias, max_aniso=8)
-    out = difftex.sample(tex, uv, uv_dx=dx, uv_dy=dy, **kw)
-    for b in range(2):
-        one = difftex.sample(tex[b:b + 1], uv[b:b + 1], uv_dx=dx, uv_dy=dy[b:b + 1],
-                             **dict(kw, lod_bias=bias[b:b + 1]))
-        torch.testing.assert_close(out[b:b + 1], one, atol=1e-12, rtol=0)
-    # A plain tensor builds only the levels auto reads: the same as the full pyramid.
-    torch.testing.assert_close(difftex.sample(mipmap(tex), uv, uv_dx=dx, uv_dy=dy, **kw), out, atol=0, rtol=0)
-
-
 def test_bad_tolerance():
     tex = torch.rand(1, 1, 8, 8)
     uv = torch.rand(1, 4, 5, 2)
