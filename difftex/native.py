@@ -46,8 +46,10 @@ def usable(like: Tensor) -> bool:
 def load() -> ModuleType | None:
     """The compiled kernel module, building it on the first call; None where disabled or the build failed."""
     global _module, _tried
-    if _tried or not enabled():
-        return _module if enabled() else None
+    if not enabled():
+        return None
+    if _tried:
+        return _module
     _tried = True
     try:
         from torch.utils import cpp_extension
