@@ -275,9 +275,7 @@ def levels_needed(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Te
     """
     from ._checks import broadcast_batch, check_float, check_same
     from .mipmap import level_count
-    from .sample import DEFAULT_TOLERANCE, FILTERS, MIP_FILTERS, _check_number, _levels_read
-    from .filters.anisotropic import tap_count
-    from .filters.auto import auto_tap_count
+    from .sample import DEFAULT_TOLERANCE, FILTERS, MIP_FILTERS, _check_number, _levels_read, _taps
     check_float("uv_dx", uv_dx, 4, last=2, shape_doc="[B, Ho, Wo, 2]")
     check_float("uv_dy", uv_dy, 4, last=2, shape_doc="[B, Ho, Wo, 2]")
     check_same("uv_dy", uv_dy, "uv_dx", uv_dx)
@@ -312,18 +310,13 @@ def levels_needed(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Te
             bias = bias.expand(B, -1, -1)
         if dx.numel() == 0:
             return 1
-        if filter in ("trilinear", "nearest-mip"):
-            log2_len = log2_length(dx, dy, H, W)
-        else:
+        if filter == "ewa":  # the level of EWA's minor axis, grown to major / max_aniso
             fp = footprint(dx, dy, H, W)
             ell = ellipse(fp)
-            if filter == "ewa":  # the level of EWA's minor axis, grown to major / max_aniso
-                log2_len = torch.maximum(ell.log2_minor, ell.log2_major - math.log2(max_aniso))
-            else:
-                n = (tap_count(ell, fp, max_aniso) if filter == "anisotropic"
-                     else auto_tap_count(ell, fp, bias, max_aniso, tolerance))
-                log2_len = ell.log2_major - torch.log2(n.to(dx.dtype))
-        need = _levels_read(log2_len, bias, full, filter == "nearest-mip")
-    if filter == "ewa":
-        need += 1  # never let a truncated top stand in for the real coarsest level
-    return min(need, full)
+            D = level(torch.maximum(ell.log2_minor, ell.log2_major - math.log2(max_aniso)), bias, full)
+            # one more: never let a truncated top stand in for the real coarsest level
+            return min(_levels_read(D, full, False) + 1, full)
+        if isinstance(bias, Tensor) and bias.dim() == 3:
+            bias = bias.reshape(-1)
+        D = _taps(filter, dx.reshape(-1, 2), dy.reshape(-1, 2), bias, H, W, full, max_aniso, tolerance)[0]
+        return _levels_read(D, full, filter == "nearest-mip")

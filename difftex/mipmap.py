@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from . import native
 from ._checks import check_float, check_same, describe
 
 
@@ -44,6 +45,10 @@ def level_size(height: int, width: int, k: int) -> tuple[int, int]:
 
 def _box2(x: Tensor) -> Tensor:
     """2 x 2 box average of an even x even level."""
+    if native.usable(x):
+        # The same sums in one pass over the level (bit-identical; 0.5 vs
+        # 0.85 ms measured at 1024^2 x 3 on CPU).
+        return native.load().box2(x)
     # Two strided passes beat F.avg_pool2d by ~5x on CPU (measured, 1024^2).
     y = x[..., 0::2] + x[..., 1::2]
     return torch.add(y[..., 0::2, :], y[..., 1::2, :]).mul_(0.25)

@@ -48,7 +48,8 @@ def _config(i: int) -> dict:
         max_aniso=r.choice([1, 2, 4.5, 16]), seed=i)
 
 
-def _run(cfg: dict, impl: str, monkeypatch) -> tuple[torch.Tensor, list]:
+def _run(cfg: dict, impl: str, monkeypatch, frozen: bool = False) -> tuple[torch.Tensor, list]:
+    """Values and gradients of one case; ``frozen``: derivatives and bias without gradients."""
     monkeypatch.setattr(basic, "IMPL", impl)
     g = torch.Generator().manual_seed(cfg["seed"])
     dt = cfg["dtype"]
@@ -63,7 +64,7 @@ def _run(cfg: dict, impl: str, monkeypatch) -> tuple[torch.Tensor, list]:
     if cfg["transposed"]:
         tex = tex.transpose(2, 3).contiguous().transpose(2, 3)
         uv = uv.transpose(1, 2).contiguous().transpose(1, 2)
-    leaves = [t.requires_grad_(True) for t in (tex, uv, dx, dy, bias)]
+    leaves = [t.requires_grad_(True) for t in ((tex, uv) if frozen else (tex, uv, dx, dy, bias))]
     kw = {}
     if cfg["filter"] in MIP:
         kw = dict(uv_dx=dx, uv_dy=dy, lod_bias=bias if cfg["bias_map"] else 0.3, max_aniso=cfg["max_aniso"])
@@ -74,20 +75,33 @@ def _run(cfg: dict, impl: str, monkeypatch) -> tuple[torch.Tensor, list]:
     return out.detach(), [torch.zeros_like(x) if gr is None else gr for x, gr in zip(leaves, grads)]
 
 
-@pytest.mark.parametrize("backend", ["native", "torch"])
-@pytest.mark.parametrize("case", range(96))
-def test_fast_path_matches_the_reference(case, backend, monkeypatch):
-    cfg = _config(case)
-    if backend == "native" and native.load() is None:
-        pytest.skip("native kernel not built here (no compiler or ninja)")
-    if backend == "torch":
-        monkeypatch.setattr(native, "load", lambda: None)
-    fast, fast_grads = _run(cfg, "fast", monkeypatch)
-    ref, ref_grads = _run(cfg, "reference", monkeypatch)
+def _compare(cfg: dict, monkeypatch, frozen: bool = False) -> None:
+    fast, fast_grads = _run(cfg, "fast", monkeypatch, frozen)
+    ref, ref_grads = _run(cfg, "reference", monkeypatch, frozen)
     tol = 1e-4 if cfg["dtype"] == torch.float32 else 1e-9
     torch.testing.assert_close(fast, ref, atol=tol, rtol=tol, equal_nan=True)
+    assert len(fast_grads) == (2 if frozen else 5)
     for name, a, b in zip(("texture", "uv", "uv_dx", "uv_dy", "lod_bias"), fast_grads, ref_grads):
         assert torch.isfinite(a).all(), name
         # Gradients sum many terms (a texel read by every point): relative to their largest entry.
         s = max(1.0, b.abs().max().item())
         torch.testing.assert_close(a, b, atol=10 * tol * s, rtol=10 * tol, msg=lambda m: f"{name}: {m}")
+
+
+@pytest.mark.parametrize("backend", ["native", "torch"])
+@pytest.mark.parametrize("case", range(96))
+def test_fast_path_matches_the_reference(case, backend, monkeypatch):
+    if backend == "native" and native.load() is None:
+        pytest.skip("native kernel not built here (no compiler or ninja)")
+    if backend == "torch":
+        monkeypatch.setattr(native, "load", lambda: None)
+    _compare(_config(case), monkeypatch)
+
+
+@pytest.mark.parametrize("case", [i for i in range(96) if FILTERS[i % len(FILTERS)] in ("anisotropic", "auto")])
+def test_kernel_front_end_matches_the_reference(case, monkeypatch):
+    # Derivatives and bias without gradients: anisotropic and auto take the
+    # native kernel's footprint front end (test_native.py checks that they do).
+    if native.load() is None:
+        pytest.skip("native kernel not built here (no compiler or ninja)")
+    _compare(_config(case), monkeypatch, frozen=True)

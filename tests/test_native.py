@@ -4,6 +4,7 @@ Its values and gradients against the reference are in test_fast_path.py.
 """
 from __future__ import annotations
 
+import importlib
 import types
 
 import pytest
@@ -14,6 +15,7 @@ from difftex import native
 from difftex.filters import basic
 
 f64 = torch.float64
+sample_mod = importlib.import_module("difftex.sample")  # the module, not the function difftex.sample
 BUILT = native.load() is not None
 needs_kernel = pytest.mark.skipif(not BUILT, reason="native kernel not built here (no compiler or ninja)")
 
@@ -33,12 +35,64 @@ def test_the_tap_filters_run_on_the_kernel_forward_and_backward(filter, monkeypa
     calls = []
     real = native.load()
     spy = types.SimpleNamespace(forward=lambda *a: calls.append("forward") or real.forward(*a),
-                                backward=lambda *a: calls.append("backward") or real.backward(*a))
+                                backward=lambda *a: calls.append("backward") or real.backward(*a),
+                                front=lambda *a: calls.append("front") or real.front(*a), box2=real.box2)
     monkeypatch.setattr(native, "load", lambda: spy)
     tex, uv, dx, dy = (t.requires_grad_() for t in _case())
     difftex.sample(tex, uv, filter=filter, uv_dx=dx, uv_dy=dy).sum().backward()
     uses = filter in ("trilinear", "nearest-mip", "anisotropic", "auto")
     assert calls == (["forward", "backward"] if uses else [])
+    # Derivatives without a gradient: anisotropic and auto also take the kernel's footprint front end.
+    calls.clear()
+    difftex.sample(tex, uv, filter=filter, uv_dx=dx.detach(), uv_dy=dy.detach()).sum().backward()
+    assert calls == ((["front"] if filter in ("anisotropic", "auto") else []) + ["forward", "backward"] if uses else [])
+    calls.clear()
+    with torch.no_grad():
+        difftex.sample(tex, uv, filter=filter, uv_dx=dx, uv_dy=dy, lod_bias=torch.zeros(1, 3, 4, dtype=f64))
+    assert calls == ((["front"] if filter in ("anisotropic", "auto") else []) + ["forward"] if uses else [])
+
+
+def _front_cases(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Footprints over 16 octaves with every degenerate case, and per-point biases with non-finite ones."""
+    g = torch.Generator().manual_seed(3)
+    M = 4000
+    dx = torch.randn(M, 2, generator=g, dtype=dtype) * torch.exp(torch.randn(M, 1, generator=g, dtype=dtype) * 3)
+    dy = torch.randn(M, 2, generator=g, dtype=dtype) * torch.exp(torch.randn(M, 1, generator=g, dtype=dtype) * 3)
+    dx[:10] = dy[:10] = 0.0  # a point
+    dx[10:20, 0] = float("nan")
+    dy[20:30, 1] = float("inf")
+    dx[30:35, 1] = -float("inf")
+    dx[35:40, 0], dy[35:40, 1] = float("nan"), float("inf")  # NaN wins
+    dy[40:60] = dx[40:60] * 3  # rank 1: minor axis 0
+    dy[60:80] = torch.stack((-dx[60:80, 1], dx[60:80, 0]), -1)  # round in uv (not in texels unless square)
+    bias = torch.randn(M, generator=g, dtype=dtype) * 2
+    bias[100:103] = torch.tensor([float("nan"), float("inf"), -float("inf")], dtype=dtype)
+    bias[103:105] = torch.tensor([500.0, -500.0], dtype=dtype)
+    return dx, dy, bias
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, f64])
+@pytest.mark.parametrize("filter", ["anisotropic", "auto"])
+@pytest.mark.parametrize("max_aniso, tolerance", [(1, 0.1), (4.5, 0.0), (16, 0.1), (16, 2.0)])
+def test_the_kernel_front_end_gives_the_torch_front_end(dtype, filter, max_aniso, tolerance, monkeypatch):
+    dx, dy, bias = _front_cases(dtype)
+    for b in (0.25, bias, torch.tensor(-1.5, dtype=dtype)):
+        for H, W in ((64, 128), (1, 7)):
+            args = (filter, dx, dy, b, H, W, 6 if H > 1 else 4, max_aniso, tolerance)
+            D, axis, n = sample_mod._taps(*args)
+            with monkeypatch.context() as m:
+                m.setattr(basic, "IMPL", "reference")
+                D_ref, axis_ref, n_ref = sample_mod._taps(*args)
+            if n_ref is None:  # the torch path's one-tap-everywhere shortcut
+                n_ref, axis_ref = torch.ones_like(n), torch.zeros_like(axis)
+            assert torch.equal(n, n_ref)
+            tol = 2e-6 if dtype == torch.float32 else 1e-12
+            torch.testing.assert_close(D, D_ref, atol=tol, rtol=0)
+            many = n > 1  # the axis of a one-tap point is unused (0 in the kernel)
+            scale = axis_ref[many].abs().amax(-1, keepdim=True)
+            torch.testing.assert_close(axis[many] / scale, axis_ref[many] / scale, atol=tol, rtol=0)
+            assert torch.isfinite(D).all() and torch.isfinite(axis).all()
 
 
 def test_disabled_or_failed_build_falls_back_to_the_torch_path(monkeypatch):
@@ -105,3 +159,16 @@ def test_threads_split_the_points_without_changing_the_result():
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(outs[0], outs[1])
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, f64])
+def test_the_kernel_box_step_is_bit_identical_to_the_torch_one(dtype):
+    g = torch.Generator().manual_seed(4)
+    x = torch.rand(2, 3, 64, 130, generator=g, dtype=dtype).transpose(2, 3)  # non-contiguous, 130 x 64
+    y = x[..., 0::2] + x[..., 1::2]  # the torch path of mipmap._box2, the same sums in the same order
+    ref = torch.add(y[..., 0::2, :], y[..., 1::2, :]).mul_(0.25)
+    out = native.load().box2(x)
+    assert out.shape == (2, 3, 65, 32) and torch.equal(out, ref)
+    with pytest.raises(RuntimeError, match="even H and W"):
+        native.load().box2(x[..., :3, :])

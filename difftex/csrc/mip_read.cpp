@@ -16,13 +16,20 @@
 //   gradient and D > 0), as mip_blend does. A point with a non-finite uv
 //   gives NaN and no gradient.
 // Coordinates are computed in double, so float32 uv far from [0, 1] keep
-// their sub-texel position.
+// their sub-texel position; texel arithmetic is in the texture's dtype (as
+// grid_sample's), with the channel count (1, 3, 4) and whether a border
+// constant is read fixed at compile time (measured: 20-30% faster than
+// double arithmetic with run-time checks, float32, 3 channels).
+//
+// Also here: the footprint front end of the anisotropic and auto filters
+// without gradients (front, at the end).
 #include <torch/extension.h>
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <type_traits>
 #include <vector>
 
 namespace {
@@ -56,18 +63,26 @@ struct Axis {
   double f, slope;
 };
 
-inline Axis axis(double u, int64_t n, int mode) {
-  Axis a;
-  a.slope = 1.0;
-  a.in0 = a.in1 = true;
-  if (mode == REPEAT) {
-    u = frac(u);
-  } else if (mode == MIRROR) {
+// repeat / mirror: u folded into one period, and d(folded u) / du; the same
+// for every level, so computed once per tap.
+struct Folded {
+  double u, slope;
+};
+
+inline Folded fold(double u, int mode) {
+  if (mode == REPEAT) return {frac(u), 1.0};
+  if (mode == MIRROR) {
     double f = frac(0.5 * u);
-    a.slope = f < 0.5 ? 1.0 : -1.0;
-    u = 1.0 - std::abs(2.0 * f - 1.0);
+    return {1.0 - std::abs(2.0 * f - 1.0), f < 0.5 ? 1.0 : -1.0};
   }
-  double x = u * static_cast<double>(n) - 0.5, x0 = floor_capped(x);
+  return {u, 1.0};
+}
+
+inline Axis place(Folded fu, int64_t n, int mode) {
+  Axis a;
+  a.slope = fu.slope;
+  a.in0 = a.in1 = true;
+  double x = fu.u * static_cast<double>(n) - 0.5, x0 = floor_capped(x);
   a.f = x - x0;
   int64_t i = static_cast<int64_t>(x0), j = i + 1;
   switch (mode) {
@@ -94,6 +109,8 @@ inline Axis axis(double u, int64_t n, int mode) {
   return a;
 }
 
+inline Axis axis(double u, int64_t n, int mode) { return place(fold(u, mode), n, mode); }
+
 // The four taps of a bilinear read: flat texel index, whether it is a
 // texel (not the border constant), the fractions and the fold slopes.
 struct Bilinear {
@@ -102,8 +119,8 @@ struct Bilinear {
   double fx, fy, sx, sy;
 };
 
-inline Bilinear taps(double u, double v, int64_t h, int64_t w, int wrap_u, int wrap_v) {
-  Axis ax = axis(u, w, wrap_u), ay = axis(v, h, wrap_v);
+inline Bilinear taps_folded(Folded u, Folded v, int64_t h, int64_t w, int wrap_u, int wrap_v) {
+  Axis ax = place(u, w, wrap_u), ay = place(v, h, wrap_v);
   Bilinear b;
   b.fx = ax.f; b.fy = ay.f; b.sx = ax.slope; b.sy = ay.slope;
   b.idx[0] = ay.i0 * w + ax.i0; b.inside[0] = ay.in0 && ax.in0;
@@ -111,6 +128,10 @@ inline Bilinear taps(double u, double v, int64_t h, int64_t w, int wrap_u, int w
   b.idx[2] = ay.i1 * w + ax.i0; b.inside[2] = ay.in1 && ax.in0;
   b.idx[3] = ay.i1 * w + ax.i1; b.inside[3] = ay.in1 && ax.in1;
   return b;
+}
+
+inline Bilinear taps(double u, double v, int64_t h, int64_t w, int wrap_u, int wrap_v) {
+  return taps_folded(fold(u, wrap_u), fold(v, wrap_v), h, w, wrap_u, wrap_v);
 }
 
 struct Level {
@@ -168,12 +189,75 @@ std::vector<Level> shapes(const std::vector<torch::Tensor>& levels, const torch:
 inline int64_t tap_count(const int64_t* pc, int64_t e) { return pc == nullptr ? 1 : (pc[e] < 1 ? 1 : pc[e]); }
 inline double tap_offset(int64_t i, int64_t N) { return (static_cast<double>(i) + 0.5) / static_cast<double>(N) - 0.5; }
 
+// Runs f(std::integral_constant<int, CC>, std::bool_constant<kBorder>) for
+// the channel count (1, 3, 4 fixed at compile time, others at run time)
+// and whether either axis reads the border constant.
+template <typename F>
+void specialized(int64_t C, int64_t wrap_u, int64_t wrap_v, F&& f) {
+  auto with_border = [&](auto cc) {
+    if (wrap_u == BORDER || wrap_v == BORDER)
+      f(cc, std::true_type());
+    else
+      f(cc, std::false_type());
+  };
+  switch (C) {
+    case 1: with_border(std::integral_constant<int, 1>()); break;
+    case 3: with_border(std::integral_constant<int, 3>()); break;
+    case 4: with_border(std::integral_constant<int, 4>()); break;
+    default: with_border(std::integral_constant<int, 0>());
+  }
+}
+
+// The forward over points [lo, hi); CC > 0 fixes the channel count at
+// compile time (accumulators in registers), 0 takes it at run time.
+template <typename scalar_t, int CC, bool kBorder>
+void forward_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<Level>& L,
+                   const std::vector<const scalar_t*>& lp, const scalar_t* puv, const scalar_t* pd,
+                   const int64_t* pc, const scalar_t* pa, scalar_t* po, int64_t M, int64_t wrap_u, int64_t wrap_v,
+                   double border, bool nearest, bool d_grad) {
+  const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
+  std::vector<scalar_t> heap(CC > 0 ? 0 : C);
+  scalar_t stack[CC > 0 ? CC : 1];
+  scalar_t* acc = CC > 0 ? stack : heap.data();
+  for (int64_t e = lo; e < hi; ++e) {
+    double u = puv[2 * e], v = puv[2 * e + 1];
+    if (!std::isfinite(u) || !std::isfinite(v)) {
+      for (int64_t c = 0; c < C; ++c) po[c * M + e] = std::numeric_limits<scalar_t>::quiet_NaN();
+      continue;
+    }
+    Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
+    const int64_t N = tap_count(pc, e);
+    for (int64_t c = 0; c < C; ++c) acc[c] = 0.0;
+    for (int64_t i = 0; i < N; ++i) {
+      double o = pc ? tap_offset(i, N) : 0.0;
+      double tu = pc ? u + o * pa[2 * e] : u, tv = pc ? v + o * pa[2 * e + 1] : v;
+      const Folded fu = fold(tu, wrap_u), fv = fold(tv, wrap_v);
+      for (int j = 0; j < r.n; ++j) {
+        const Level& lv = L[r.k[j]];
+        Bilinear b = taps_folded(fu, fv, lv.h, lv.w, wrap_u, wrap_v);
+        const double wl = r.wt[j];
+        const scalar_t wts[4] = {static_cast<scalar_t>(wl * (1 - b.fx) * (1 - b.fy)), static_cast<scalar_t>(wl * b.fx * (1 - b.fy)),
+                                 static_cast<scalar_t>(wl * (1 - b.fx) * b.fy), static_cast<scalar_t>(wl * b.fx * b.fy)};
+        const scalar_t* p = lp[r.k[j]];
+        const scalar_t bv = static_cast<scalar_t>(border);
+        for (int64_t c = 0; c < C; ++c) {
+          const scalar_t* pp = p + c * lv.plane;
+          scalar_t s = 0;
+          for (int q = 0; q < 4; ++q) s += wts[q] * (!kBorder || b.inside[q] ? pp[b.idx[q]] : bv);
+          acc[c] += s;
+        }
+      }
+    }
+    for (int64_t c = 0; c < C; ++c) po[c * M + e] = acc[c] / static_cast<scalar_t>(N);
+  }
+}
+
 torch::Tensor forward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor D, torch::Tensor axis,
                       torch::Tensor count, int64_t wrap_u, int64_t wrap_v, double border, bool nearest,
                       bool d_grad) {
   auto L = shapes(levels, uv, D, axis, count);
-  const int64_t K = static_cast<int64_t>(L.size()), C = levels[0].size(0), M = uv.size(0);
-  auto out = torch::zeros({C, M}, uv.options());
+  const int64_t C = levels[0].size(0), M = uv.size(0);
+  auto out = torch::empty({C, M}, uv.options());
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_forward", [&] {
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
@@ -183,37 +267,101 @@ torch::Tensor forward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch
     const scalar_t* pa = pc ? axis.data_ptr<scalar_t>() : nullptr;
     scalar_t* po = out.data_ptr<scalar_t>();
     at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
-      std::vector<double> acc(C);
-      for (int64_t e = lo; e < hi; ++e) {
-        double u = puv[2 * e], v = puv[2 * e + 1];
-        if (!std::isfinite(u) || !std::isfinite(v)) {
-          for (int64_t c = 0; c < C; ++c) po[c * M + e] = std::numeric_limits<scalar_t>::quiet_NaN();
-          continue;
-        }
-        Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
-        const int64_t N = tap_count(pc, e);
-        std::fill(acc.begin(), acc.end(), 0.0);
-        for (int64_t i = 0; i < N; ++i) {
-          double o = pc ? tap_offset(i, N) : 0.0;
-          double tu = pc ? u + o * pa[2 * e] : u, tv = pc ? v + o * pa[2 * e + 1] : v;
-          for (int j = 0; j < r.n; ++j) {
-            const Level& lv = L[r.k[j]];
-            Bilinear b = taps(tu, tv, lv.h, lv.w, wrap_u, wrap_v);
-            double wts[4] = {(1 - b.fx) * (1 - b.fy), b.fx * (1 - b.fy), (1 - b.fx) * b.fy, b.fx * b.fy};
-            const scalar_t* p = lp[r.k[j]];
-            for (int64_t c = 0; c < C; ++c) {
-              const scalar_t* pp = p + c * lv.plane;
-              double s = 0;
-              for (int q = 0; q < 4; ++q) s += wts[q] * (b.inside[q] ? static_cast<double>(pp[b.idx[q]]) : border);
-              acc[c] += r.wt[j] * s;
-            }
-          }
-        }
-        for (int64_t c = 0; c < C; ++c) po[c * M + e] = static_cast<scalar_t>(acc[c] / static_cast<double>(N));
-      }
+      specialized(C, wrap_u, wrap_v, [&](auto cc, auto border_) {
+        forward_range<scalar_t, decltype(cc)::value, decltype(border_)::value>(
+            lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border, nearest, d_grad);
+      });
     });
   });
   return out;
+}
+
+// The backward's outputs: level gradients (allocated on first read when
+// need_levels) and pointers into the others (null where not needed).
+template <typename scalar_t>
+struct Grads {
+  bool need_levels;
+  std::vector<torch::Tensor>* levels;
+  scalar_t *uv, *D, *axis;
+};
+
+// The backward over all points (serial: the texture gradient is a scatter,
+// and points share texels); CC and kBorder as in forward_range.
+template <typename scalar_t, int CC, bool kBorder>
+void backward_points(int64_t Cdyn, const std::vector<torch::Tensor>& levels, const std::vector<Level>& L,
+                     const std::vector<const scalar_t*>& lp, const scalar_t* puv, const scalar_t* pd,
+                     const int64_t* pc, const scalar_t* pa, const scalar_t* pg, const Grads<scalar_t>& out, int64_t M,
+                     int64_t wrap_u, int64_t wrap_v, double border, bool nearest, bool d_grad) {
+  const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
+  const bool need_levels = out.need_levels;
+  std::vector<scalar_t*> gp(K, nullptr);
+  const scalar_t bv = static_cast<scalar_t>(border);
+  std::vector<scalar_t> heap(CC > 0 ? 0 : C);
+  scalar_t stack[CC > 0 ? CC : 1];
+  scalar_t* g = CC > 0 ? stack : heap.data();
+  for (int64_t e = 0; e < M; ++e) {
+    double u = puv[2 * e], v = puv[2 * e + 1];
+    if (!std::isfinite(u) || !std::isfinite(v)) continue;
+    Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
+    const int64_t N = tap_count(pc, e);
+    bool any = false;
+    for (int64_t c = 0; c < C; ++c) {
+      g[c] = pg[c * M + e] / static_cast<scalar_t>(N);
+      any = any || g[c] != 0;
+    }
+    if (!any) continue;
+    double du = 0, dv = 0, dD = 0, dax = 0, day = 0;
+    for (int64_t i = 0; i < N; ++i) {
+      double o = pc ? tap_offset(i, N) : 0.0;
+      double tu = pc ? u + o * pa[2 * e] : u, tv = pc ? v + o * pa[2 * e + 1] : v;
+      const Folded fu = fold(tu, wrap_u), fv = fold(tv, wrap_v);
+      double tdu = 0, tdv = 0;
+      for (int j = 0; j < r.n; ++j) {
+        const int64_t k = r.k[j];
+        const Level& lv = L[k];
+        Bilinear b = taps_folded(fu, fv, lv.h, lv.w, wrap_u, wrap_v);
+        const scalar_t fx = static_cast<scalar_t>(b.fx), fy = static_cast<scalar_t>(b.fy);
+        const scalar_t w[4] = {(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy};
+        const scalar_t wl = static_cast<scalar_t>(r.wt[j]);
+        const scalar_t* p = lp[k];
+        if (need_levels && gp[k] == nullptr) {
+          (*out.levels)[k] = torch::zeros_like(levels[k]);
+          gp[k] = (*out.levels)[k].template data_ptr<scalar_t>();
+        }
+        scalar_t sx = 0, sy = 0, sv = 0;
+        for (int64_t c = 0; c < C; ++c) {
+          const scalar_t* pp = p + c * lv.plane;
+          scalar_t t[4];
+          for (int q = 0; q < 4; ++q) t[q] = !kBorder || b.inside[q] ? pp[b.idx[q]] : bv;
+          sx += g[c] * ((1 - fy) * (t[1] - t[0]) + fy * (t[3] - t[2]));
+          sy += g[c] * ((1 - fx) * (t[2] - t[0]) + fx * (t[3] - t[1]));
+          sv += g[c] * (w[0] * t[0] + w[1] * t[1] + w[2] * t[2] + w[3] * t[3]);
+          if (need_levels) {
+            scalar_t* gq = gp[k] + c * lv.plane;
+            const scalar_t gw = g[c] * wl;
+            for (int q = 0; q < 4; ++q)
+              if (!kBorder || b.inside[q]) gq[b.idx[q]] += gw * w[q];
+          }
+        }
+        tdu += r.wt[j] * sx * b.sx * static_cast<double>(lv.w);
+        tdv += r.wt[j] * sy * b.sy * static_cast<double>(lv.h);
+        dD += r.dwt[j] * sv;
+      }
+      du += tdu;
+      dv += tdv;
+      dax += o * tdu;
+      day += o * tdv;
+    }
+    if (out.uv) {
+      out.uv[2 * e] = static_cast<scalar_t>(du);
+      out.uv[2 * e + 1] = static_cast<scalar_t>(dv);
+    }
+    if (out.D) out.D[e] = static_cast<scalar_t>(dD);
+    if (out.axis) {
+      out.axis[2 * e] = static_cast<scalar_t>(dax);
+      out.axis[2 * e + 1] = static_cast<scalar_t>(day);
+    }
+  }
 }
 
 // Gradients: (one per level, undefined where no point reads it or not
@@ -235,74 +383,161 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_backward", [&] {
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
-    std::vector<scalar_t*> gp(K, nullptr);
-    const scalar_t* puv = uv.data_ptr<scalar_t>();
-    const scalar_t* pd = D.data_ptr<scalar_t>();
+    Grads<scalar_t> out;
+    out.need_levels = need_levels;
+    out.levels = &gl;
+    out.uv = need_uv ? guv.data_ptr<scalar_t>() : nullptr;
+    out.D = need_D ? gD.data_ptr<scalar_t>() : nullptr;
+    out.axis = need_axis ? gax.data_ptr<scalar_t>() : nullptr;
     const int64_t* pc = count.numel() ? count.data_ptr<int64_t>() : nullptr;
-    const scalar_t* pa = pc ? axis.data_ptr<scalar_t>() : nullptr;
-    const scalar_t* pg = grad.data_ptr<scalar_t>();
-    scalar_t* pguv = need_uv ? guv.data_ptr<scalar_t>() : nullptr;
-    scalar_t* pgD = need_D ? gD.data_ptr<scalar_t>() : nullptr;
-    scalar_t* pgax = need_axis ? gax.data_ptr<scalar_t>() : nullptr;
-    // Serial: the texture gradient is a scatter (points share texels).
-    for (int64_t e = 0; e < M; ++e) {
-      double u = puv[2 * e], v = puv[2 * e + 1];
-      if (!std::isfinite(u) || !std::isfinite(v)) continue;
-      Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
-      const int64_t N = tap_count(pc, e);
-      const double inv = 1.0 / static_cast<double>(N);
-      double du = 0, dv = 0, dD = 0, dax = 0, day = 0;
-      for (int64_t i = 0; i < N; ++i) {
-        double o = pc ? tap_offset(i, N) : 0.0;
-        double tu = pc ? u + o * pa[2 * e] : u, tv = pc ? v + o * pa[2 * e + 1] : v;
-        double tdu = 0, tdv = 0;
-        for (int j = 0; j < r.n; ++j) {
-          const int64_t k = r.k[j];
-          const Level& lv = L[k];
-          Bilinear b = taps(tu, tv, lv.h, lv.w, wrap_u, wrap_v);
-          double wts[4] = {(1 - b.fx) * (1 - b.fy), b.fx * (1 - b.fy), (1 - b.fx) * b.fy, b.fx * b.fy};
-          const scalar_t* p = lp[k];
-          if (need_levels && gp[k] == nullptr) {
-            gl[k] = torch::zeros_like(levels[k]);
-            gp[k] = gl[k].data_ptr<scalar_t>();
-          }
-          double sx = 0, sy = 0, sv = 0;
-          for (int64_t c = 0; c < C; ++c) {
-            double g = static_cast<double>(pg[c * M + e]) * inv;
-            if (g == 0) continue;
-            const scalar_t* pp = p + c * lv.plane;
-            double t[4];
-            for (int q = 0; q < 4; ++q) t[q] = b.inside[q] ? static_cast<double>(pp[b.idx[q]]) : border;
-            sx += g * ((1 - b.fy) * (t[1] - t[0]) + b.fy * (t[3] - t[2]));
-            sy += g * ((1 - b.fx) * (t[2] - t[0]) + b.fx * (t[3] - t[1]));
-            sv += g * (wts[0] * t[0] + wts[1] * t[1] + wts[2] * t[2] + wts[3] * t[3]);
-            if (need_levels) {
-              scalar_t* gq = gp[k] + c * lv.plane;
-              for (int q = 0; q < 4; ++q)
-                if (b.inside[q]) gq[b.idx[q]] += static_cast<scalar_t>(g * r.wt[j] * wts[q]);
-            }
-          }
-          tdu += r.wt[j] * sx * b.sx * static_cast<double>(lv.w);
-          tdv += r.wt[j] * sy * b.sy * static_cast<double>(lv.h);
-          dD += r.dwt[j] * sv;
-        }
-        du += tdu;
-        dv += tdv;
-        dax += o * tdu;
-        day += o * tdv;
-      }
-      if (need_uv) {
-        pguv[2 * e] = static_cast<scalar_t>(du);
-        pguv[2 * e + 1] = static_cast<scalar_t>(dv);
-      }
-      if (need_D) pgD[e] = static_cast<scalar_t>(dD);
-      if (need_axis) {
-        pgax[2 * e] = static_cast<scalar_t>(dax);
-        pgax[2 * e + 1] = static_cast<scalar_t>(day);
-      }
-    }
+    specialized(C, wrap_u, wrap_v, [&](auto cc, auto border_) {
+      backward_points<scalar_t, decltype(cc)::value, decltype(border_)::value>(
+          C, levels, L, lp, uv.data_ptr<scalar_t>(), D.data_ptr<scalar_t>(), pc, pc ? axis.data_ptr<scalar_t>() : nullptr,
+          grad.data_ptr<scalar_t>(), out, M, wrap_u, wrap_v, border, nearest, d_grad);
+    });
   });
   return {gl, guv, gD, gax};
+}
+
+// The footprint front end of the anisotropic and auto filters, without
+// gradients (difftex/sample.py _taps uses it where no derivative or bias
+// needs one): per point, in double, what lod.py's footprint / ellipse /
+// level and the tap counts of filters/anisotropic.py and filters/auto.py
+// give, in one pass instead of some fifty elementwise torch ops. Returns D
+// [M] clamped to [0, levels - 1], the tap axis [M, 2] in uv (0 for one
+// tap) and the tap count [M] (int64). Degenerate footprints as lod.py: NaN
+// or zero derivatives are a point (level 0), infinite ones the whole
+// texture (the top level), one tap each; a NaN sum with the bias gives
+// level 0. (Trilinear's log2_length is one log2 a point: as fast in torch.)
+constexpr double kFar = 1.0e4;   // lod.py _FAR: log2 of a zero / infinite length
+constexpr double kRatioTol = 1e-4;  // filters/anisotropic.py _RATIO_TOL
+constexpr double kMaxRatio = 18446744073709551616.0;  // 2^64: filters/auto.py _MAX_LOG2 (its floor of
+                                                      // half a texel, _LOG2_FLOOR = -1, is the 2^(bias + 1) below)
+
+struct Taps {
+  double D, ax, ay;
+  int64_t n;
+};
+
+inline double clamp_level(double x, int64_t levels) {
+  if (std::isnan(x)) return 0.0;
+  return x < 0 ? 0.0 : (x > levels - 1 ? static_cast<double>(levels - 1) : x);
+}
+
+inline Taps front_one(double dx0, double dx1, double dy0, double dy1, double bias, double exp2_bias1, double H,
+                      double W, int64_t levels, bool is_auto, double cap, double tolerance) {
+  const double j0 = dx0 * W, j1 = dx1 * H, j2 = dy0 * W, j3 = dy1 * H;
+  Taps t{0.0, 0.0, 0.0, 1};
+  const double top = std::max(std::max(std::abs(j0), std::abs(j1)), std::max(std::abs(j2), std::abs(j3)));
+  if (!(top > 0) || std::isinf(top)) {
+    // A point (zero or NaN derivatives) or the whole texture (infinite
+    // ones, NaN winning): one tap at that end of the pyramid.
+    const bool nan = std::isnan(j0) || std::isnan(j1) || std::isnan(j2) || std::isnan(j3);
+    t.D = clamp_level((std::isinf(top) && !nan ? kFar : -kFar) + bias, levels);
+    return t;
+  }
+  // footprint / ellipse on J / max |J_ij| (lod.py)
+  const double r = 1.0 / top, p0 = j0 * r, p1 = j1 * r, q0 = j2 * r, q1 = j3 * r;
+  const double a = p0 * p0 + q0 * q0, c = p1 * p1 + q1 * q1, b = p0 * p1 + q0 * q1, hd = 0.5 * (a - c);
+  const double disc = std::sqrt(hd * hd + b * b), lam = 0.5 * (a + c) + disc;
+  const double major = std::sqrt(lam);  // > 0: one of p, q has an entry of magnitude 1
+  const double minor = std::min(std::abs(p0 * q1 - q0 * p1) / major, major);
+  const double log2_major = std::log2(major * top);  // also > 0 (top is finite)
+  // tap_count (ceil as -floor(-x): the library call is slow without SSE4.1)
+  double n = minor > 0 ? -floor_capped(kRatioTol - major / minor) : cap;
+  n = std::min(std::max(n, 1.0), cap);
+  if (is_auto) {
+    // auto_tap_count: ratio = 2^(log2 major' - max(log2 minor', -1)) with
+    // x' = x 2^bias, in linear form (exp2_bias1 = 2^(bias + 1)); a
+    // non-finite bias gives NaN or 0 there, i.e. one tap.
+    double m = 1.0;
+    if (std::isfinite(bias)) {
+      const double ratio = minor * top * exp2_bias1 >= 1.0 ? major / minor : major * top * exp2_bias1;
+      const double full = std::min(-floor_capped(kRatioTol - std::min(ratio, kMaxRatio)), cap);
+      m = ratio > cap ? full : -floor_capped(kRatioTol - full / (1.0 + tolerance));
+      m = std::min(std::max(m, 1.0), cap);
+    }
+    n = std::min(n, m);
+  }
+  t.n = static_cast<int64_t>(n);
+  t.D = clamp_level(log2_major - (n > 1 ? std::log2(n) : 0.0) + bias, levels);
+  if (t.n > 1) {
+    // The major axis as a uv vector: the eigenvector of J J^T = [a b; b c]
+    // for lam, oriented as lod.py's angle 0.5 atan2(2b, a - c) (x >= 0).
+    double ex = a >= c ? lam - c : b, ey = a >= c ? b : lam - a;
+    const double s = (ex < 0 ? -major * top : major * top) / std::sqrt(ex * ex + ey * ey);
+    t.ax = ex * s / W;
+    t.ay = ey * s / H;
+  }
+  return t;
+}
+
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, torch::Tensor dy, torch::Tensor bias,
+                                                              double bias0, int64_t H, int64_t W, int64_t levels,
+                                                              bool is_auto, double max_aniso, double tolerance) {
+  const int64_t M = dx.size(0);
+  TORCH_CHECK(dx.dim() == 2 && dx.size(1) == 2 && dx.is_contiguous() && dx.device().is_cpu() &&
+                  dy.sizes() == dx.sizes() && dy.is_contiguous() && dy.scalar_type() == dx.scalar_type(),
+              "mip_read.front: uv_dx, uv_dy must be contiguous CPU [M, 2] of one dtype");
+  TORCH_CHECK(bias.numel() == 0 || (bias.dim() == 1 && bias.size(0) == M && bias.is_contiguous() &&
+                                    bias.scalar_type() == dx.scalar_type()),
+              "mip_read.front: bias must be contiguous [M] of uv_dx's dtype, or empty");
+  TORCH_CHECK(levels >= 1, "mip_read.front: levels >= 1");
+  const double cap = std::max(std::floor(max_aniso), 1.0), exp2_bias0 = std::exp2(bias0 + 1.0);
+  auto D = torch::empty({M}, dx.options());
+  auto axis = torch::empty({M, 2}, dx.options());
+  auto count = torch::empty({M}, dx.options().dtype(torch::kInt64));
+  AT_DISPATCH_FLOATING_TYPES(dx.scalar_type(), "mip_read_front", [&] {
+    const scalar_t* px = dx.data_ptr<scalar_t>();
+    const scalar_t* py = dy.data_ptr<scalar_t>();
+    const scalar_t* pb = bias.numel() ? bias.data_ptr<scalar_t>() : nullptr;
+    scalar_t* pD = D.data_ptr<scalar_t>();
+    scalar_t* pa = axis.data_ptr<scalar_t>();
+    int64_t* pn = count.data_ptr<int64_t>();
+    at::parallel_for(0, M, 2048, [&](int64_t lo, int64_t hi) {
+      for (int64_t e = lo; e < hi; ++e) {
+        const double b = pb ? static_cast<double>(pb[e]) : bias0;
+        const double e2 = is_auto ? (pb ? std::exp2(b + 1.0) : exp2_bias0) : 0.0;
+        Taps t = front_one(px[2 * e], px[2 * e + 1], py[2 * e], py[2 * e + 1], b, e2, static_cast<double>(H),
+                           static_cast<double>(W), levels, is_auto, cap, tolerance);
+        pD[e] = static_cast<scalar_t>(t.D);
+        pa[2 * e] = static_cast<scalar_t>(t.ax);
+        pa[2 * e + 1] = static_cast<scalar_t>(t.ay);
+        pn[e] = t.n;
+      }
+    });
+  });
+  return {D, axis, count};
+}
+
+// One 2 x 2 box step of an even x even level (difftex/mipmap.py _box2, the
+// same sums in the same order, so bit-identical): [..., H, W] -> [..., H/2,
+// W/2]. One pass over the level instead of torch's three (two strided adds
+// and a scale): about half the memory traffic of the pyramid build.
+torch::Tensor box2(torch::Tensor x) {
+  TORCH_CHECK(x.dim() >= 2 && x.size(-2) % 2 == 0 && x.size(-1) % 2 == 0 && x.device().is_cpu(),
+              "mip_read.box2: expected a CPU tensor [..., H, W] with even H and W");
+  x = x.contiguous();
+  const int64_t H = x.size(-2), W = x.size(-1), h = H / 2, w = W / 2;
+  auto sizes = x.sizes().vec();
+  sizes[sizes.size() - 2] = h;
+  sizes[sizes.size() - 1] = w;
+  auto out = torch::empty(sizes, x.options());
+  const int64_t rows = x.numel() / W / 2;  // output rows over every plane
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "mip_read_box2", [&] {
+    const scalar_t* px = x.data_ptr<scalar_t>();
+    scalar_t* po = out.data_ptr<scalar_t>();
+    at::parallel_for(0, rows, 16, [&](int64_t lo, int64_t hi) {
+      for (int64_t r = lo; r < hi; ++r) {
+        const scalar_t* a = px + 2 * r * W;
+        const scalar_t* b = a + W;
+        scalar_t* o = po + r * w;
+        for (int64_t j = 0; j < w; ++j)
+          o[j] = ((a[2 * j] + a[2 * j + 1]) + (b[2 * j] + b[2 * j + 1])) * static_cast<scalar_t>(0.25);
+      }
+    });
+  });
+  return out;
 }
 
 }  // namespace
@@ -310,4 +545,6 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &forward, "mip pyramid read, forward");
   m.def("backward", &backward, "mip pyramid read, first-order backward");
+  m.def("box2", &box2, "2 x 2 box step of an even level");
+  m.def("front", &front, "anisotropic / auto level, tap axis and count, no gradient");
 }

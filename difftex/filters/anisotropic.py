@@ -10,17 +10,17 @@ trilinear taps spread evenly over the major axis, at offsets
 Taps are variable per point: a point that needs one tap costs one trilinear
 tap. All go through one ``trilinear_points`` call (one pass of the native
 kernel on the CPU; flattened into one (point, tap) list on the torch path).
+Where no derivative needs a gradient, the native kernel's front end
+computes the counts, levels and axes on the CPU (``difftex.sample``); the
+functions here are its reference and serve everywhere else.
 """
 from __future__ import annotations
 
 import math
-from typing import Sequence
-
 import torch
 from torch import Tensor
 
 from ..lod import Ellipse, Footprint, level
-from .trilinear import trilinear_points
 
 # N = ceil(major / minor) would jump to 2 on rounding noise at an exactly
 # isotropic footprint; a ratio within this of an integer rounds down.
@@ -39,33 +39,28 @@ def tap_count(ell: Ellipse, fp: Footprint, max_aniso: float) -> Tensor:
     return (n * (1 - bad) + bad).long()
 
 
-def anisotropic_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse, lod_bias: Tensor | float,
-                       max_aniso: float, wrap_u: str, wrap_v: str, border: float, *,
-                       taps: Tensor | None = None) -> Tensor:
-    """Anisotropic filtering of one texture.
+def anisotropic_taps(fp: Footprint, ell: Ellipse, n: Tensor, lod_bias: Tensor | float, levels: int, height: int,
+                     width: int) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """Level, axis and count of the taps of ``n`` (``tap_count`` or auto's) per point, for ``trilinear_points``.
 
     Args:
-        levels: the pyramid of one texture, ``[1, C, H_k, W_k]`` each.
-        uv: [M, 2] sample points.
-        fp, ell: footprint and its ellipse per point (``difftex.lod``).
+        fp, ell: footprint and its ellipse per point, [M] (``difftex.lod``).
+        n: [M] int64 tap count per point (>= 1).
         lod_bias: scalar or [M].
-        max_aniso: most taps per point (>= 1).
-        wrap_u, wrap_v, border: as in ``separable_sample``.
-        taps: optional [M] int64 tap count per point (>= 1) replacing
-            ``tap_count``; the "auto" filter passes its own, smaller counts.
+        levels: number of pyramid levels (D is clamped to ``levels - 1``).
+        height, width: level 0's size.
 
     Returns:
-        [C, M]. Differentiable in the levels, uv, the footprint (through the
-        level and the tap positions; N itself is piecewise constant) and
+        (D [M], axis [M, 2] uv, n), or (D, None, None) where every point
+        takes one tap. ``D = log2(major / n) + lod_bias``, clamped; ``axis``
+        is the major axis (its full length) as a uv vector. Differentiable in
+        the footprint (through D and the axis; n is piecewise constant) and
         lod_bias.
     """
-    H, W = levels[0].shape[-2:]
-    n = tap_count(ell, fp, max_aniso) if taps is None else taps
-    nf = n.to(uv.dtype)
-    D = level(ell.log2_major - torch.log2(nf), lod_bias, len(levels))
+    D = level(ell.log2_major - torch.log2(n.to(ell.major.dtype)), lod_bias, levels)
     if bool((n == 1).all()):
-        return trilinear_points(levels, uv, D, wrap_u, wrap_v, border)
+        return D, None, None
     # Major axis as a uv vector: direction * length in texels / texture size.
     scale = torch.exp2(fp.log2_scale).unsqueeze(-1)
-    axis = ell.direction * (ell.major.unsqueeze(-1) * scale) / uv.new_tensor([float(W), float(H)])
-    return trilinear_points(levels, uv, D, wrap_u, wrap_v, border, axis=axis, count=n)
+    axis = ell.direction * (ell.major.unsqueeze(-1) * scale) / ell.major.new_tensor([float(width), float(height)])
+    return D, axis, n
