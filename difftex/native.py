@@ -4,11 +4,15 @@ The trilinear / nearest-mip taps of a pyramid, one a point or N along the
 footprint's major axis (the trilinear, nearest-mip, anisotropic and auto
 filters), are one pass over the points in C++ on the CPU: no tap list, no
 sorting of points by level, no per-level passes, and a backward that
-touches only the texels read. The torch path (``mip_blend`` over
-grid_sample, ``filters/trilinear.py``) stays the reference the tests compare
-it with, and runs wherever this kernel does not: on CUDA, for double
-backward, with ``DIFFTEX_NATIVE=0`` in the environment, or where the build
-fails (no C++ compiler or ninja), which is reported once as a warning.
+touches only the texels read. The same module holds two smaller passes:
+the footprint front end of the anisotropic and auto filters (level, tap
+count and axis per point) where no derivative needs a gradient, and the
+2 x 2 box step of the pyramid build. The torch path (``mip_blend`` over
+grid_sample, ``filters/trilinear.py``; ``lod.py`` and the tap counts;
+``mipmap._box2``) stays the reference the tests compare it with, and runs
+wherever this kernel does not: on CUDA, for double backward, with
+``DIFFTEX_NATIVE=0`` in the environment, or where the build fails (no C++
+compiler or ninja), which is reported once as a warning.
 
 The first use compiles the kernel with ``torch.utils.cpp_extension.load``
 (about 30-60 s; cached by torch in ``TORCH_EXTENSIONS_DIR``, by default

@@ -47,7 +47,7 @@ NOTES = """
 Per pixel, with the footprint's axes from `difftex.lod.ellipse` (level-0 texels, times `2^lod_bias`):
 `N_a = min(ceil(major / max(minor, 1/2)), max_aniso)` and `N = ceil(N_a / (1 + tolerance))` trilinear taps
 (`N = N_a` where the axis ratio exceeds max_aniso: those taps are already wider than the minor axis), run
-through the anisotropic filter's own code (`anisotropic_points(..., taps=N)`). Pixels whose major axis is
+through the anisotropic filter's own code (`anisotropic_taps` with these N). Pixels whose major axis is
 under half a texel get one tap at level 0 (bilinear), round footprints one tap (trilinear), long ones 2-16.
 `tolerance` (default 0.1) is how much wider (as a fraction) a tap's prefilter may be than anisotropic's;
 with 0 auto equals anisotropic wherever the minor axis is at least half a texel.

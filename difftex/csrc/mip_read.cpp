@@ -439,8 +439,10 @@ inline double clamp_level(double x, int64_t levels) {
   return x < 0 ? 0.0 : (x > levels - 1 ? static_cast<double>(levels - 1) : x);
 }
 
+// exp2_bias1: 2^(bias + 1) for auto, or -1 for "not yet computed" (a
+// per-point bias); shrink: 1 / (1 + tolerance).
 DT_INLINE Taps front_one(double dx0, double dx1, double dy0, double dy1, double bias, double exp2_bias1, double H,
-                      double W, int64_t levels, bool is_auto, double cap, double tolerance) {
+                         double W, int64_t levels, bool is_auto, double cap, double shrink) {
   const double j0 = dx0 * W, j1 = dx1 * H, j2 = dy0 * W, j3 = dy1 * H;
   Taps t{0.0, 0.0, 0.0, 1};
   const double top = std::max(std::max(std::abs(j0), std::abs(j1)), std::max(std::abs(j2), std::abs(j3)));
@@ -458,17 +460,18 @@ DT_INLINE Taps front_one(double dx0, double dx1, double dy0, double dy1, double 
   const double major = std::sqrt(lam);  // > 0: one of p, q has an entry of magnitude 1
   const double minor = std::min(std::abs(p0 * q1 - q0 * p1) / major, major);
   // tap_count (ceil as -floor(-x): the library call is slow without SSE4.1)
-  double n = minor > 0 ? -floor_capped(kRatioTol - major / minor) : cap;
-  n = std::min(std::max(n, 1.0), cap);
-  if (is_auto) {
+  const double q = minor > 0 ? major / minor : cap;
+  double n = std::min(std::max(-floor_capped(kRatioTol - q), 1.0), cap);
+  if (is_auto && n > 1) {  // (auto never takes more taps than tap_count)
     // auto_tap_count: ratio = 2^(log2 major' - max(log2 minor', -1)) with
     // x' = x 2^bias, in linear form (exp2_bias1 = 2^(bias + 1)); a
     // non-finite bias gives NaN or 0 there, i.e. one tap.
     double m = 1.0;
     if (std::isfinite(bias)) {
-      const double ratio = minor * top * exp2_bias1 >= 1.0 ? major / minor : major * top * exp2_bias1;
+      if (exp2_bias1 < 0) exp2_bias1 = std::exp2(bias + 1.0);
+      const double ratio = minor * top * exp2_bias1 >= 1.0 ? q : major * top * exp2_bias1;
       const double full = std::min(-floor_capped(kRatioTol - std::min(ratio, kMaxRatio)), cap);
-      m = ratio > cap ? full : -floor_capped(kRatioTol - full / (1.0 + tolerance));
+      m = ratio > cap ? full : -floor_capped(kRatioTol - full * shrink);
       m = std::min(std::max(m, 1.0), cap);
     }
     n = std::min(n, m);
@@ -498,6 +501,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, 
               "mip_read.front: bias must be contiguous [M] of uv_dx's dtype, or empty");
   TORCH_CHECK(levels >= 1, "mip_read.front: levels >= 1");
   const double cap = std::max(std::floor(max_aniso), 1.0), exp2_bias0 = std::exp2(bias0 + 1.0);
+  const double shrink = 1.0 / (1.0 + tolerance);
   auto D = torch::empty({M}, dx.options());
   auto axis = torch::empty({M, 2}, dx.options());
   auto count = torch::empty({M}, dx.options().dtype(torch::kInt64));
@@ -511,9 +515,8 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, 
     at::parallel_for(0, M, 2048, [&](int64_t lo, int64_t hi) {
       for (int64_t e = lo; e < hi; ++e) {
         const double b = pb ? static_cast<double>(pb[e]) : bias0;
-        const double e2 = is_auto ? (pb ? std::exp2(b + 1.0) : exp2_bias0) : 0.0;
-        Taps t = front_one(px[2 * e], px[2 * e + 1], py[2 * e], py[2 * e + 1], b, e2, static_cast<double>(H),
-                           static_cast<double>(W), levels, is_auto, cap, tolerance);
+        Taps t = front_one(px[2 * e], px[2 * e + 1], py[2 * e], py[2 * e + 1], b, pb ? -1.0 : exp2_bias0,
+                           static_cast<double>(H), static_cast<double>(W), levels, is_auto, cap, shrink);
         pD[e] = static_cast<scalar_t>(t.D);
         pa[2 * e] = static_cast<scalar_t>(t.ax);
         pa[2 * e + 1] = static_cast<scalar_t>(t.ay);

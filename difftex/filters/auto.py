@@ -40,10 +40,13 @@ ratio just over 1 is *not* cheapened to one tap: the anisotropic filter's
 two taps one level finer are markedly sharper and 3-5 dB more accurate on
 spot's texture (docs/auto_filter.md).
 
-Points are not grouped by method: one ``anisotropic_points`` call serves
-them all (a one-tap point costs one trilinear tap, a magnified one a single
-bilinear read), so values, gradients and degenerate-input handling are the
-anisotropic filter's.
+Points are not grouped by method: one ``trilinear_points`` call with the
+anisotropic filter's taps (``anisotropic_taps``) serves them all (a one-tap
+point costs one trilinear tap, a magnified one a single bilinear read), so
+values, gradients and degenerate-input handling are the anisotropic
+filter's. Where no derivative needs a gradient the native kernel computes
+these counts on the CPU (``difftex.sample``); this function is its
+reference.
 """
 from __future__ import annotations
 
