@@ -38,8 +38,10 @@ peers get their n^2 uv for free, so their cost in a real renderer, n^2
 rasterization and interpolation, is not counted).  Forward under no_grad and
 forward + backward of ``sum()`` with gradients to the texture and uv (the
 mip filters build the pyramid inside the timed region).  Methods are run
-round-robin, ``--repeats`` rounds a scene, and the medians reported, so
-that the load drift of a shared machine hits every method alike;
+round-robin, ``--repeats`` rounds a scene in a new random order each round
+(so that no method always follows one that evicts the caches), and the
+medians reported, so that the load drift of a shared machine hits every
+method alike;
 ``--threads 1`` by default for the same reason.
 
 Outputs in ``--out`` (default results/speed_vs_accuracy): results.csv
@@ -59,6 +61,7 @@ import importlib
 import math
 import os
 import platform
+import random
 import shutil
 import statistics
 import sys
@@ -515,7 +518,7 @@ def error_image(img: Tensor, ref: Tensor, mask: Tensor) -> Tensor:
 
 
 def run_scene(scene: Scene, methods: list[str], repeats: int) -> tuple[list[dict], dict[str, Tensor]]:
-    """Scores and medians of fwd / fwd+bwd for every method, timed round-robin."""
+    """Scores and medians of fwd / fwd+bwd for every method, timed round-robin (shuffled each round)."""
     tex = scene.texture.clone().requires_grad_(True)
     uv = scene.uv.clone().requires_grad_(True)
     uv_ss = {n: u.clone().requires_grad_(True) for n, u in scene.uv_ss.items()}
@@ -527,8 +530,15 @@ def run_scene(scene: Scene, methods: list[str], repeats: int) -> tuple[list[dict
         with torch.no_grad():
             images[m] = fn()
     times: dict[str, tuple[list[float], list[float]]] = {m: ([], []) for m in methods}
+    order = list(fns)
+    rng = random.Random(0)
     for rep in range(repeats + 1):  # round 0 warms up (allocator, lazy imports) and is dropped
-        for m, fn in fns.items():
+        # A new order each round: a method timed right after a heavy one (EWA, 8x8) finds its
+        # data evicted from the caches (measured: auto, which followed EWA, read up to 1.37x
+        # anisotropic-16's forward on the small scenes, against 1.02x when timed alone).
+        rng.shuffle(order)
+        for m in order:
+            fn = fns[m]
             t0 = time.perf_counter()
             with torch.no_grad():
                 fn()
@@ -764,7 +774,7 @@ def main(argv: Optional[list[str]] = None) -> list[dict]:
     grid_scenes = [s for s in scenes if s.name in grid_names] or scenes[:3]
     plot_error_grid(grid_scenes, images, methods, out / "error_grid.png")
     total = time.perf_counter() - t_start
-    meta = (f"{args.res}x{args.res} images, {len(scenes)} scenes, medians of {args.repeats} round-robin rounds, "
+    meta = (f"{args.res}x{args.res} images, {len(scenes)} scenes, medians of {args.repeats} shuffled round-robin rounds, "
             f"{torch.get_num_threads()} thread(s), torch {torch.__version__}, {platform.machine()}, "
             f"{os.cpu_count()} CPUs (shared: timings are noisy); FLIP: "
             f"{'flip-evaluator (LDR, 67 ppd)' if _flip is not None else 'not installed'}; total run {total:.0f} s.")
