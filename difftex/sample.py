@@ -167,21 +167,23 @@ def _taps(filter: str, dx: Tensor, dy: Tensor, bias: Union[float, Tensor], heigh
     dx, dy: [M, 2]; bias: a number, a 0-dim tensor or [M]. Returns (D [M]
     clamped to ``[0, levels - 1]``, axis [M, 2], count [M] int64), axis and
     count None for trilinear / nearest-mip (one tap a point), and None where
-    every point takes one tap on the torch path. For anisotropic and auto
-    where no gradient reaches dx, dy or the bias, the native kernel computes
-    it in one pass on the CPU (the same values to rounding, about 2-3x
-    faster than these torch ops, which are its reference).
+    every point takes one tap on the torch path. Where no gradient reaches
+    dx, dy or the bias, the native kernel computes it in one pass on the CPU
+    (the same values to rounding, about 2-3x faster than these torch ops,
+    which are its reference).
     """
-    if filter in ("trilinear", "nearest-mip"):
-        return level(log2_length(dx, dy, height, width), bias, levels), None, None
+    kind = {"trilinear": 0, "nearest-mip": 0, "anisotropic": 1, "auto": 2}[filter]
     grad = torch.is_grad_enabled() and (dx.requires_grad or dy.requires_grad or
                                         (isinstance(bias, Tensor) and bias.requires_grad))
     if not grad and basic.IMPL == "fast" and native.usable(dx):
         per_point = isinstance(bias, Tensor) and bias.dim() == 1
-        return native.load().front(dx.contiguous(), dy.contiguous(),
-                                   bias.detach().contiguous() if per_point else dx.new_empty(0),
-                                   0.0 if per_point else float(bias), height, width, levels, filter == "auto",
-                                   max_aniso, tolerance)
+        D, axis, count = native.load().front(dx.contiguous(), dy.contiguous(),
+                                             bias.detach().contiguous() if per_point else dx.new_empty(0),
+                                             0.0 if per_point else float(bias), height, width, levels, kind,
+                                             max_aniso, tolerance)
+        return (D, axis, count) if kind else (D, None, None)
+    if kind == 0:
+        return level(log2_length(dx, dy, height, width), bias, levels), None, None
     fp = footprint(dx, dy, height, width)
     ell = ellipse(fp)
     n = (auto_tap_count(ell, fp, bias, max_aniso, tolerance) if filter == "auto"

@@ -98,10 +98,11 @@ def test_fast_path_matches_the_reference(case, backend, monkeypatch):
     _compare(_config(case), monkeypatch)
 
 
-@pytest.mark.parametrize("case", [i for i in range(96) if FILTERS[i % len(FILTERS)] in ("anisotropic", "auto")])
+@pytest.mark.parametrize("case", [i for i in range(96) if FILTERS[i % len(FILTERS)] in ("trilinear", "nearest-mip",
+                                                                                        "anisotropic", "auto")])
 def test_kernel_front_end_matches_the_reference(case, monkeypatch):
-    # Derivatives and bias without gradients: anisotropic and auto take the
-    # native kernel's footprint front end (test_native.py checks that they do).
+    # Derivatives and bias without gradients: the bilinear-tap mip filters take
+    # the native kernel's footprint front end (test_native.py checks that they do).
     if native.load() is None:
         pytest.skip("native kernel not built here (no compiler or ninja)")
     _compare(_config(case), monkeypatch, frozen=True)

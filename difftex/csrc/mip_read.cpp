@@ -21,7 +21,7 @@
 // constant is read fixed at compile time (measured: 20-30% faster than
 // double arithmetic with run-time checks, float32, 3 channels).
 //
-// Also here: the footprint front end of the anisotropic and auto filters
+// Also here: the footprint front end of the bilinear-tap mip filters
 // without gradients (front, at the end).
 #include <torch/extension.h>
 
@@ -414,16 +414,17 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
   return {gl, guv, gD, gax};
 }
 
-// The footprint front end of the anisotropic and auto filters, without
+// The footprint front end of the bilinear-tap mip filters, without
 // gradients (difftex/sample.py _taps uses it where no derivative or bias
-// needs one): per point, in double, what lod.py's footprint / ellipse /
-// level and the tap counts of filters/anisotropic.py and filters/auto.py
-// give, in one pass instead of some fifty elementwise torch ops. Returns D
-// [M] clamped to [0, levels - 1], the tap axis [M, 2] in uv (0 for one
-// tap) and the tap count [M] (int64). Degenerate footprints as lod.py: NaN
-// or zero derivatives are a point (level 0), infinite ones the whole
-// texture (the top level), one tap each; a NaN sum with the bias gives
-// level 0. (Trilinear's log2_length is one log2 a point: as fast in torch.)
+// needs one): per point, in double, what lod.py's log2_length / footprint
+// / ellipse / level and the tap counts of filters/anisotropic.py and
+// filters/auto.py give, in one pass instead of 15-50 elementwise torch
+// ops. kind 0: trilinear / nearest-mip (the longer footprint vector), 1:
+// anisotropic, 2: auto. Returns D [M] clamped to [0, levels - 1] and, for
+// kinds 1 and 2, the tap axis [M, 2] in uv (0 for one tap) and the tap
+// count [M] (int64). Degenerate footprints as lod.py: NaN or zero
+// derivatives are a point (level 0), infinite ones the whole texture (the
+// top level), one tap each; a NaN sum with the bias gives level 0.
 constexpr double kFar = 1.0e4;   // lod.py _FAR: log2 of a zero / infinite length
 constexpr double kRatioTol = 1e-4;  // filters/anisotropic.py _RATIO_TOL
 constexpr double kMaxRatio = 18446744073709551616.0;  // 2^64: filters/auto.py _MAX_LOG2 (its floor of
@@ -437,6 +438,17 @@ struct Taps {
 inline double clamp_level(double x, int64_t levels) {
   if (std::isnan(x)) return 0.0;
   return x < 0 ? 0.0 : (x > levels - 1 ? static_cast<double>(levels - 1) : x);
+}
+
+// lod.py log2_length + level: squares unscaled (in double no float input
+// overflows); NaN wins over inf, as torch.maximum does there.
+DT_INLINE double trilinear_level(double dx0, double dx1, double dy0, double dy1, double bias, double H, double W,
+                                 int64_t levels) {
+  const double a = dx0 * W, b = dx1 * H, c = dy0 * W, d = dy1 * H;
+  const double p2 = a * a + b * b, q2 = c * c + d * d;
+  if (std::isnan(p2) || std::isnan(q2)) return clamp_level(-kFar + bias, levels);
+  const double len2 = std::max(p2, q2);
+  return clamp_level((len2 == 0 ? -kFar : (std::isinf(len2) ? kFar : 0.5 * std::log2(len2))) + bias, levels);
 }
 
 // exp2_bias1: 2^(bias + 1) for auto, or -1 for "not yet computed" (a
@@ -491,7 +503,7 @@ DT_INLINE Taps front_one(double dx0, double dx1, double dy0, double dy1, double 
 
 std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, torch::Tensor dy, torch::Tensor bias,
                                                               double bias0, int64_t H, int64_t W, int64_t levels,
-                                                              bool is_auto, double max_aniso, double tolerance) {
+                                                              int64_t kind, double max_aniso, double tolerance) {
   const int64_t M = dx.size(0);
   TORCH_CHECK(dx.dim() == 2 && dx.size(1) == 2 && dx.is_contiguous() && dx.device().is_cpu() &&
                   dy.sizes() == dx.sizes() && dy.is_contiguous() && dy.scalar_type() == dx.scalar_type(),
@@ -499,12 +511,13 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, 
   TORCH_CHECK(bias.numel() == 0 || (bias.dim() == 1 && bias.size(0) == M && bias.is_contiguous() &&
                                     bias.scalar_type() == dx.scalar_type()),
               "mip_read.front: bias must be contiguous [M] of uv_dx's dtype, or empty");
-  TORCH_CHECK(levels >= 1, "mip_read.front: levels >= 1");
+  TORCH_CHECK(levels >= 1 && kind >= 0 && kind <= 2, "mip_read.front: levels >= 1, kind 0, 1 or 2");
+  const bool is_auto = kind == 2;
   const double cap = std::max(std::floor(max_aniso), 1.0), exp2_bias0 = std::exp2(bias0 + 1.0);
   const double shrink = 1.0 / (1.0 + tolerance);
   auto D = torch::empty({M}, dx.options());
-  auto axis = torch::empty({M, 2}, dx.options());
-  auto count = torch::empty({M}, dx.options().dtype(torch::kInt64));
+  auto axis = torch::empty({kind ? M : 0, 2}, dx.options());
+  auto count = torch::empty({kind ? M : 0}, dx.options().dtype(torch::kInt64));
   AT_DISPATCH_FLOATING_TYPES(dx.scalar_type(), "mip_read_front", [&] {
     const scalar_t* px = dx.data_ptr<scalar_t>();
     const scalar_t* py = dy.data_ptr<scalar_t>();
@@ -512,11 +525,17 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, 
     scalar_t* pD = D.data_ptr<scalar_t>();
     scalar_t* pa = axis.data_ptr<scalar_t>();
     int64_t* pn = count.data_ptr<int64_t>();
+    const double h = static_cast<double>(H), w = static_cast<double>(W);
     at::parallel_for(0, M, 2048, [&](int64_t lo, int64_t hi) {
       for (int64_t e = lo; e < hi; ++e) {
         const double b = pb ? static_cast<double>(pb[e]) : bias0;
-        Taps t = front_one(px[2 * e], px[2 * e + 1], py[2 * e], py[2 * e + 1], b, pb ? -1.0 : exp2_bias0,
-                           static_cast<double>(H), static_cast<double>(W), levels, is_auto, cap, shrink);
+        if (kind == 0) {
+          pD[e] = static_cast<scalar_t>(trilinear_level(px[2 * e], px[2 * e + 1], py[2 * e], py[2 * e + 1], b, h, w,
+                                                        levels));
+          continue;
+        }
+        Taps t = front_one(px[2 * e], px[2 * e + 1], py[2 * e], py[2 * e + 1], b, pb ? -1.0 : exp2_bias0, h, w,
+                           levels, is_auto, cap, shrink);
         pD[e] = static_cast<scalar_t>(t.D);
         pa[2 * e] = static_cast<scalar_t>(t.ax);
         pa[2 * e + 1] = static_cast<scalar_t>(t.ay);
@@ -563,5 +582,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &forward, "mip pyramid read, forward");
   m.def("backward", &backward, "mip pyramid read, first-order backward");
   m.def("box2", &box2, "2 x 2 box step of an even level");
-  m.def("front", &front, "anisotropic / auto level, tap axis and count, no gradient");
+  m.def("front", &front, "mip level (and anisotropic / auto tap axis and count), no gradient");
 }
