@@ -124,8 +124,6 @@ DT_INLINE Axis place(Folded fu, int64_t n, int mode) {
   return a;
 }
 
-inline Axis axis(double u, int64_t n, int mode) { return place(fold(u, mode), n, mode); }
-
 // The four taps of a bilinear read: flat texel index, whether it is a
 // texel (not the border constant), the fractions and the fold slopes.
 struct Bilinear {
@@ -143,10 +141,6 @@ DT_INLINE Bilinear taps_folded(Folded u, Folded v, int64_t h, int64_t w, int wra
   b.idx[2] = ay.i1 * w + ax.i0; b.inside[2] = ay.in1 && ax.in0;
   b.idx[3] = ay.i1 * w + ax.i1; b.inside[3] = ay.in1 && ax.in1;
   return b;
-}
-
-inline Bilinear taps(double u, double v, int64_t h, int64_t w, int wrap_u, int wrap_v) {
-  return taps_folded(fold(u, wrap_u), fold(v, wrap_v), h, w, wrap_u, wrap_v);
 }
 
 struct Level {
