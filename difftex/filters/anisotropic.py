@@ -17,6 +17,7 @@ functions here are its reference and serve everywhere else.
 from __future__ import annotations
 
 import math
+
 import torch
 from torch import Tensor
 
