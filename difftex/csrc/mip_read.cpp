@@ -446,9 +446,10 @@ DT_INLINE double trilinear_level(double dx0, double dx1, double dy0, double dy1,
 }
 
 // exp2_bias1: 2^(bias + 1) for auto, or -1 for "not yet computed" (a
-// per-point bias); shrink: 1 / (1 + tolerance).
+// per-point bias); inv_h, inv_w: 1 / H, 1 / W; shrink: 1 / (1 + tolerance).
 DT_INLINE Taps front_one(double dx0, double dx1, double dy0, double dy1, double bias, double exp2_bias1, double H,
-                         double W, int64_t levels, bool is_auto, double cap, double shrink) {
+                         double W, double inv_h, double inv_w, int64_t levels, bool is_auto, double cap,
+                         double shrink) {
   const double j0 = dx0 * W, j1 = dx1 * H, j2 = dy0 * W, j3 = dy1 * H;
   Taps t{0.0, 0.0, 0.0, 1};
   const double top = std::max(std::max(std::abs(j0), std::abs(j1)), std::max(std::abs(j2), std::abs(j3)));
@@ -464,9 +465,10 @@ DT_INLINE Taps front_one(double dx0, double dx1, double dy0, double dy1, double 
   const double a = p0 * p0 + q0 * q0, c = p1 * p1 + q1 * q1, b = p0 * p1 + q0 * q1, hd = 0.5 * (a - c);
   const double disc = std::sqrt(hd * hd + b * b), lam = 0.5 * (a + c) + disc;
   const double major = std::sqrt(lam);  // > 0: one of p, q has an entry of magnitude 1
-  const double minor = std::min(std::abs(p0 * q1 - q0 * p1) / major, major);
+  // minor = min(det / major, major), so major / minor = max(major^2 / det, 1)
+  const double det = std::abs(p0 * q1 - q0 * p1);
   // tap_count (ceil as -floor(-x): the library call is slow without SSE4.1)
-  const double q = minor > 0 ? major / minor : cap;
+  const double q = det > 0 ? std::max(lam / det, 1.0) : cap;
   double n = std::min(std::max(-floor_capped(kRatioTol - q), 1.0), cap);
   if (is_auto && n > 1) {  // (auto never takes more taps than tap_count)
     // auto_tap_count: ratio = 2^(log2 major' - max(log2 minor', -1)) with
@@ -475,6 +477,7 @@ DT_INLINE Taps front_one(double dx0, double dx1, double dy0, double dy1, double 
     double m = 1.0;
     if (std::isfinite(bias)) {
       if (exp2_bias1 < 0) exp2_bias1 = std::exp2(bias + 1.0);
+      const double minor = std::min(det / major, major);
       const double ratio = minor * top * exp2_bias1 >= 1.0 ? q : major * top * exp2_bias1;
       const double full = std::min(-floor_capped(kRatioTol - std::min(ratio, kMaxRatio)), cap);
       m = ratio > cap ? full : -floor_capped(kRatioTol - full * shrink);
@@ -489,8 +492,8 @@ DT_INLINE Taps front_one(double dx0, double dx1, double dy0, double dy1, double 
     // for lam, oriented as lod.py's angle 0.5 atan2(2b, a - c) (x >= 0).
     double ex = a >= c ? lam - c : b, ey = a >= c ? b : lam - a;
     const double s = (ex < 0 ? -major * top : major * top) / std::sqrt(ex * ex + ey * ey);
-    t.ax = ex * s / W;
-    t.ay = ey * s / H;
+    t.ax = ex * s * inv_w;
+    t.ay = ey * s * inv_h;
   }
   return t;
 }
@@ -529,7 +532,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, 
           continue;
         }
         Taps t = front_one(px[2 * e], px[2 * e + 1], py[2 * e], py[2 * e + 1], b, pb ? -1.0 : exp2_bias0, h, w,
-                           levels, is_auto, cap, shrink);
+                           1.0 / h, 1.0 / w, levels, is_auto, cap, shrink);
         pD[e] = static_cast<scalar_t>(t.D);
         pa[2 * e] = static_cast<scalar_t>(t.ax);
         pa[2 * e + 1] = static_cast<scalar_t>(t.ay);
