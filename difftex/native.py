@@ -4,11 +4,12 @@ The trilinear / nearest-mip taps of a pyramid, one a point or N along the
 footprint's major axis (the trilinear, nearest-mip, anisotropic and auto
 filters), are one pass over the points in C++ on the CPU: no tap list, no
 sorting of points by level, no per-level passes, and a backward that
-touches only the texels read. The same module holds two smaller passes:
+touches only the texels read. The same module holds three smaller passes:
 the footprint front end of these filters (level, and the anisotropic /
 auto tap count and axis, per point) where no derivative needs a gradient,
-and the 2 x 2 box step of the pyramid build. The torch path (``mip_blend`` over
-grid_sample, ``filters/trilinear.py``; ``lod.py`` and the tap counts;
+the EWA filter's forward where nothing needs one, and the 2 x 2 box step
+of the pyramid build. The torch path (``mip_blend`` over grid_sample,
+``filters/trilinear.py``; ``lod.py`` and the tap counts; ``filters/ewa.py``;
 ``mipmap._box2``) stays the reference the tests compare it with, and runs
 wherever this kernel does not: on CUDA, for double backward, with
 ``DIFFTEX_NATIVE=0`` in the environment, or where the build fails (no C++

@@ -36,7 +36,8 @@ def test_the_tap_filters_run_on_the_kernel_forward_and_backward(filter, monkeypa
     real = native.load()
     spy = types.SimpleNamespace(forward=lambda *a: calls.append("forward") or real.forward(*a),
                                 backward=lambda *a: calls.append("backward") or real.backward(*a),
-                                front=lambda *a: calls.append("front") or real.front(*a), box2=real.box2)
+                                front=lambda *a: calls.append("front") or real.front(*a), box2=real.box2,
+                                ewa=lambda *a: calls.append("ewa") or real.ewa(*a))
     monkeypatch.setattr(native, "load", lambda: spy)
     tex, uv, dx, dy = (t.requires_grad_() for t in _case())
     difftex.sample(tex, uv, filter=filter, uv_dx=dx, uv_dy=dy).sum().backward()
@@ -46,10 +47,11 @@ def test_the_tap_filters_run_on_the_kernel_forward_and_backward(filter, monkeypa
     calls.clear()
     difftex.sample(tex, uv, filter=filter, uv_dx=dx.detach(), uv_dy=dy.detach()).sum().backward()
     assert calls == (["front", "forward", "backward"] if uses else [])
+    # No gradient at all (rendering): EWA's forward runs on the kernel too.
     calls.clear()
     with torch.no_grad():
         difftex.sample(tex, uv, filter=filter, uv_dx=dx, uv_dy=dy, lod_bias=torch.zeros(1, 3, 4, dtype=f64))
-    assert calls == (["front", "forward"] if uses else [])
+    assert calls == (["front", "forward"] if uses else ["ewa"] if filter == "ewa" else [])
 
 
 def _front_cases(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
