@@ -34,24 +34,23 @@ def _case(dtype=f64, B=1):
 def test_the_tap_filters_run_on_the_kernel_forward_and_backward(filter, monkeypatch):
     calls = []
     real = native.load()
-    spy = types.SimpleNamespace(forward=lambda *a: calls.append("forward") or real.forward(*a),
-                                backward=lambda *a: calls.append("backward") or real.backward(*a),
-                                front=lambda *a: calls.append("front") or real.front(*a), box2=real.box2,
-                                ewa=lambda *a: calls.append("ewa") or real.ewa(*a))
+    spy = types.SimpleNamespace(box2=real.box2, **{
+        name: (lambda name: lambda *a: calls.append(name) or getattr(real, name)(*a))(name)
+        for name in ("forward", "backward", "front", "ewa", "ewa_backward")})
     monkeypatch.setattr(native, "load", lambda: spy)
     tex, uv, dx, dy = (t.requires_grad_() for t in _case())
+    taps = filter in ("trilinear", "nearest-mip", "anisotropic", "auto")
+    kernel = (["forward", "backward"] if taps else ["ewa", "ewa_backward"] if filter == "ewa" else [])
     difftex.sample(tex, uv, filter=filter, uv_dx=dx, uv_dy=dy).sum().backward()
-    uses = filter in ("trilinear", "nearest-mip", "anisotropic", "auto")
-    assert calls == (["forward", "backward"] if uses else [])
-    # Derivatives without a gradient: the kernel's footprint front end too.
+    assert calls == kernel
+    # Derivatives without a gradient: the taps' footprint front end runs on the kernel too.
     calls.clear()
     difftex.sample(tex, uv, filter=filter, uv_dx=dx.detach(), uv_dy=dy.detach()).sum().backward()
-    assert calls == (["front", "forward", "backward"] if uses else [])
-    # No gradient at all (rendering): EWA's forward runs on the kernel too.
+    assert calls == (["front"] if taps else []) + kernel
     calls.clear()
     with torch.no_grad():
         difftex.sample(tex, uv, filter=filter, uv_dx=dx, uv_dy=dy, lod_bias=torch.zeros(1, 3, 4, dtype=f64))
-    assert calls == (["front", "forward"] if uses else ["ewa"] if filter == "ewa" else [])
+    assert calls == (["front"] if taps else []) + kernel[:1]
 
 
 def _front_cases(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -134,7 +133,7 @@ def test_float16_and_cuda_points_take_the_torch_path():
 
 
 @needs_kernel
-@pytest.mark.parametrize("filter", ["trilinear", "anisotropic"])
+@pytest.mark.parametrize("filter", ["trilinear", "anisotropic", "ewa"])
 def test_double_backward_through_the_kernel_uses_the_torch_path(filter):
     tex, uv, dx, dy = _case()
     assert basic.IMPL == "fast" and native.usable(uv)

@@ -608,80 +608,116 @@ DT_INLINE bool wrap_int(int64_t i, int64_t n, int mode, int64_t* out) {
   }
 }
 
-// The EWA filter's forward without gradients (filters/ewa.py, its reference,
-// which also serves every case with gradients): per point the blend of
-// levels floor(D) and floor(D) + 1 (mip_blend's weights and reads), each the
-// Gaussian-weighted mean of the texels inside the padded ellipse as
-// _ewa_level and _pairs compute it, in double. uv [M, 2] are the points with
-// whole periods dropped (finite); sigma [M, 3] the scaled J J^T with the
-// minor axis grown, minor [M] that axis (scaled), scale [M] the footprint
-// scale, D [M] the clamped level; levels [C, h, w]. Returns [C, M].
-torch::Tensor ewa(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor sigma, torch::Tensor minor,
-                  torch::Tensor scale, torch::Tensor D, int64_t full_h, int64_t full_w, int64_t wrap_u,
-                  int64_t wrap_v, double border) {
-  auto L = shapes(levels, uv, D, torch::empty({0}, uv.options()), torch::empty({0}, uv.options().dtype(torch::kInt64)));
-  const int64_t K = static_cast<int64_t>(L.size()), C = levels[0].size(0), M = uv.size(0);
+// EWA (filters/ewa.py, its reference, which also serves CUDA and double
+// backward): per point the blend of levels floor(D) and floor(D) + 1
+// (mip_blend's weights and reads), each the Gaussian-weighted mean of the
+// texels inside the padded ellipse as _ewa_level and _pairs compute it, in
+// double. Inputs: uv [M, 2] the points with whole periods dropped (finite);
+// sigma [M, 3] the scaled J J^T with the minor axis grown; minor [M] that
+// axis (scaled); scale [M] the footprint scale; D [M] the clamped level;
+// levels [C, h, w].
+constexpr double kAlpha = 2.0;  // filters/ewa.py _ALPHA (and _MAX_MINOR = 2 below)
+
+// One point's ellipse on level k, in level-k texels (_ewa_level).
+struct EwaSetup {
+  double kx, ky, s, sxx, sxy, syy, det, ox, oy, sx, sy;
+  bool capped;  // s = cap / minor_k (else s = scale)
+};
+
+template <typename scalar_t>
+DT_INLINE EwaSetup ewa_setup(const Level& lv, bool coarsest, int64_t full_h, int64_t full_w, const scalar_t* uv,
+                             const scalar_t* sigma, double minor, double scale) {
+  EwaSetup q;
+  const double hk = static_cast<double>(lv.h), wk = static_cast<double>(lv.w);
+  q.kx = wk / static_cast<double>(full_w);
+  q.ky = hk / static_cast<double>(full_h);
+  const double cap = coarsest ? 2.0 : std::max(2.0, std::max(hk, wk));
+  const double minor_k = minor * std::max(q.kx, q.ky);
+  q.capped = minor_k > 0 && cap / minor_k < scale;
+  q.s = q.capped ? cap / minor_k : scale;
+  const double s2 = q.s * q.s;
+  q.sxx = static_cast<double>(sigma[0]) * (s2 * q.kx * q.kx) + 1;
+  q.sxy = static_cast<double>(sigma[1]) * (s2 * q.kx * q.ky);
+  q.syy = static_cast<double>(sigma[2]) * (s2 * q.ky * q.ky) + 1;
+  q.det = q.sxx * q.syy - q.sxy * q.sxy;
+  const double posx = static_cast<double>(uv[0]) * wk - 0.5, posy = static_cast<double>(uv[1]) * hk - 0.5;
+  // Integer origin + fraction (no fraction left from 2^52 on, as in torch).
+  q.ox = std::abs(posx) < 4503599627370496.0 ? floor_capped(posx) : posx;
+  q.oy = std::abs(posy) < 4503599627370496.0 ? floor_capped(posy) : posy;
+  q.sx = posx - q.ox;
+  q.sy = posy - q.oy;
+  return q;
+}
+
+// Calls f(ss, tt, r2, w, texel offset or -1 for the border constant) for
+// every texel centre inside the ellipse (_pairs' rows and runs).
+template <typename F>
+DT_INLINE void ewa_texels(const EwaSetup& q, const Level& lv, int wrap_u, int wrap_v, F&& f) {
+  const double floor_w = std::exp(-kAlpha), hy = std::sqrt(q.syy);
+  const double r0 = -floor_capped(-(q.sy - hy));
+  const int64_t rows = std::max<int64_t>(static_cast<int64_t>(floor_capped(q.sy + hy) - r0 + 1), 0);
+  for (int64_t i = 0; i < rows; ++i) {
+    const double ry = r0 + static_cast<double>(i), tt = ry - q.sy;
+    const double centre = q.sx + q.sxy / q.syy * tt;
+    const double half = std::sqrt(std::max(q.det / q.syy * (1 - tt * tt / q.syy), 0.0));
+    const double c0 = -floor_capped(-(centre - half));
+    const int64_t cols = std::max<int64_t>(static_cast<int64_t>(floor_capped(centre + half) - c0 + 1), 0);
+    int64_t iy;
+    const bool vy = wrap_int(index_of(q.oy + ry), lv.h, wrap_v, &iy);
+    for (int64_t j = 0; j < cols; ++j) {
+      const double rx = c0 + static_cast<double>(j), ss = rx - q.sx;
+      const double r2 = (q.syy * ss * ss - 2 * q.sxy * ss * tt + q.sxx * tt * tt) / q.det;
+      const double w = std::max(std::exp(-kAlpha * r2) - floor_w, 0.0);
+      int64_t ix;
+      const bool vx = wrap_int(index_of(q.ox + rx), lv.w, wrap_u, &ix);
+      f(ss, tt, r2, w, vx && vy ? iy * lv.w + ix : -1);
+    }
+  }
+}
+
+void ewa_checks(const torch::Tensor& uv, const torch::Tensor& sigma, const torch::Tensor& minor,
+                const torch::Tensor& scale) {
+  const int64_t M = uv.size(0);
   TORCH_CHECK(sigma.dim() == 2 && sigma.size(0) == M && sigma.size(1) == 3 && sigma.is_contiguous() &&
                   minor.dim() == 1 && minor.size(0) == M && minor.is_contiguous() && scale.dim() == 1 &&
                   scale.size(0) == M && scale.is_contiguous() && sigma.scalar_type() == uv.scalar_type() &&
                   minor.scalar_type() == uv.scalar_type() && scale.scalar_type() == uv.scalar_type(),
               "mip_read.ewa: sigma [M, 3], minor [M], scale [M] contiguous, of uv's dtype");
+}
+
+// Forward: [C, M]. d_grad: D needs a gradient (the upper level is read at
+// an integer D too, as mip_blend does).
+torch::Tensor ewa(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor sigma, torch::Tensor minor,
+                  torch::Tensor scale, torch::Tensor D, int64_t full_h, int64_t full_w, int64_t wrap_u,
+                  int64_t wrap_v, double border, bool d_grad) {
+  auto L = shapes(levels, uv, D, torch::empty({0}, uv.options()), torch::empty({0}, uv.options().dtype(torch::kInt64)));
+  ewa_checks(uv, sigma, minor, scale);
+  const int64_t K = static_cast<int64_t>(L.size()), C = levels[0].size(0), M = uv.size(0);
   auto out = torch::empty({C, M}, uv.options());
-  const double alpha = 2.0, floor_w = std::exp(-alpha);  // filters/ewa.py _ALPHA, _MAX_MINOR = 2
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_ewa", [&] {
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
     const scalar_t *puv = uv.data_ptr<scalar_t>(), *ps = sigma.data_ptr<scalar_t>();
     const scalar_t *pm = minor.data_ptr<scalar_t>(), *psc = scale.data_ptr<scalar_t>(), *pd = D.data_ptr<scalar_t>();
     scalar_t* po = out.data_ptr<scalar_t>();
-    const scalar_t bv = static_cast<scalar_t>(border);
     at::parallel_for(0, M, 256, [&](int64_t lo, int64_t hi) {
       std::vector<double> num(C), acc(C);
       for (int64_t e = lo; e < hi; ++e) {
-        Reads r = reads_of(static_cast<double>(pd[e]), K, false, false);
+        Reads r = reads_of(static_cast<double>(pd[e]), K, false, d_grad);
         std::fill(acc.begin(), acc.end(), 0.0);
         for (int j = 0; j < r.n; ++j) {
-          const int64_t k = r.k[j];
-          const Level& lv = L[k];
-          const double hk = static_cast<double>(lv.h), wk = static_cast<double>(lv.w);
-          const double kx = wk / static_cast<double>(full_w), ky = hk / static_cast<double>(full_h);
-          const double cap = k == K - 1 ? 2.0 : std::max(2.0, std::max(hk, wk));
-          const double minor_k = static_cast<double>(pm[e]) * std::max(kx, ky), sc = static_cast<double>(psc[e]);
-          const double sk = minor_k > 0 ? std::min(sc, cap / minor_k) : sc, s2 = sk * sk;
-          const double sxx = static_cast<double>(ps[3 * e]) * (s2 * kx * kx) + 1;
-          const double sxy = static_cast<double>(ps[3 * e + 1]) * (s2 * kx * ky);
-          const double syy = static_cast<double>(ps[3 * e + 2]) * (s2 * ky * ky) + 1;
-          const double posx = static_cast<double>(puv[2 * e]) * wk - 0.5, posy = static_cast<double>(puv[2 * e + 1]) * hk - 0.5;
-          // Integer origin + fraction (no fraction left from 2^52 on, as in torch).
-          const double ox = std::abs(posx) < 4503599627370496.0 ? floor_capped(posx) : posx;
-          const double oy = std::abs(posy) < 4503599627370496.0 ? floor_capped(posy) : posy;
-          const double sx = posx - ox, sy = posy - oy;
-          const double det = sxx * syy - sxy * sxy, hy = std::sqrt(syy);
-          const double r0 = -floor_capped(-(sy - hy));
-          const int64_t rows = std::max<int64_t>(static_cast<int64_t>(floor_capped(sy + hy) - r0 + 1), 0);
+          const Level& lv = L[r.k[j]];
+          const EwaSetup q = ewa_setup(lv, r.k[j] == K - 1, full_h, full_w, puv + 2 * e, ps + 3 * e,
+                                       static_cast<double>(pm[e]), static_cast<double>(psc[e]));
+          const scalar_t* p = lp[r.k[j]];
           std::fill(num.begin(), num.end(), 0.0);
           double den = 0;
-          const scalar_t* p = lp[k];
-          for (int64_t i = 0; i < rows; ++i) {
-            const double ry = r0 + static_cast<double>(i), dy = ry - sy;
-            const double centre = sx + sxy / syy * dy;
-            const double half = std::sqrt(std::max(det / syy * (1 - dy * dy / syy), 0.0));
-            const double c0 = -floor_capped(-(centre - half));
-            const int64_t cols = std::max<int64_t>(static_cast<int64_t>(floor_capped(centre + half) - c0 + 1), 0);
-            int64_t iy;
-            const bool vy = wrap_int(index_of(oy + ry), lv.h, static_cast<int>(wrap_v), &iy);
-            for (int64_t jx = 0; jx < cols; ++jx) {
-              const double rx = c0 + static_cast<double>(jx), ss = rx - sx;
-              const double r2 = (syy * ss * ss - 2 * sxy * ss * dy + sxx * dy * dy) / det;
-              const double w = std::max(std::exp(-alpha * r2) - floor_w, 0.0);
-              int64_t ix;
-              const bool vx = wrap_int(index_of(ox + rx), lv.w, static_cast<int>(wrap_u), &ix);
-              const bool valid = vx && vy;
-              for (int64_t c = 0; c < C; ++c)
-                num[c] += w * static_cast<double>(valid ? p[c * lv.plane + iy * lv.w + ix] : bv);
-              den += w;
-            }
-          }
+          ewa_texels(q, lv, static_cast<int>(wrap_u), static_cast<int>(wrap_v),
+                     [&](double, double, double, double w, int64_t at) {
+                       for (int64_t c = 0; c < C; ++c)
+                         num[c] += w * (at >= 0 ? static_cast<double>(p[c * lv.plane + at]) : border);
+                       den += w;
+                     });
           for (int64_t c = 0; c < C; ++c) acc[c] += r.wt[j] * (num[c] / den);
         }
         for (int64_t c = 0; c < C; ++c) po[c * M + e] = static_cast<scalar_t>(acc[c]);
@@ -691,12 +727,122 @@ torch::Tensor ewa(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Te
   return out;
 }
 
+// First-order backward: (level gradients, undefined where unread or not
+// needed; uv [M, 2]; sigma [M, 3]; minor [M]; scale [M]; D [M]); each
+// undefined where not needed. Serial: the texture gradient is a scatter.
+std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor>
+ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor sigma, torch::Tensor minor,
+             torch::Tensor scale, torch::Tensor D, torch::Tensor grad, int64_t full_h, int64_t full_w,
+             int64_t wrap_u, int64_t wrap_v, double border, bool d_grad, bool need_levels, bool need_uv,
+             bool need_ellipse, bool need_D) {
+  auto L = shapes(levels, uv, D, torch::empty({0}, uv.options()), torch::empty({0}, uv.options().dtype(torch::kInt64)));
+  ewa_checks(uv, sigma, minor, scale);
+  const int64_t K = static_cast<int64_t>(L.size()), C = levels[0].size(0), M = uv.size(0);
+  grad = grad.contiguous();
+  TORCH_CHECK(grad.dim() == 2 && grad.size(0) == C && grad.size(1) == M && grad.scalar_type() == uv.scalar_type(),
+              "mip_read.ewa_backward: grad must be [C, M] of uv's dtype");
+  std::vector<torch::Tensor> gl(K);
+  auto opt = uv.options();
+  torch::Tensor guv = need_uv ? torch::zeros({M, 2}, opt) : torch::Tensor();
+  torch::Tensor gsig = need_ellipse ? torch::zeros({M, 3}, opt) : torch::Tensor();
+  torch::Tensor gmin = need_ellipse ? torch::zeros({M}, opt) : torch::Tensor();
+  torch::Tensor gsc = need_ellipse ? torch::zeros({M}, opt) : torch::Tensor();
+  torch::Tensor gD = need_D ? torch::zeros({M}, opt) : torch::Tensor();
+  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_ewa_backward", [&] {
+    std::vector<const scalar_t*> lp;
+    for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
+    std::vector<scalar_t*> gp(K, nullptr);
+    const scalar_t *puv = uv.data_ptr<scalar_t>(), *ps = sigma.data_ptr<scalar_t>();
+    const scalar_t *pm = minor.data_ptr<scalar_t>(), *psc = scale.data_ptr<scalar_t>(), *pd = D.data_ptr<scalar_t>();
+    const scalar_t* pg = grad.data_ptr<scalar_t>();
+    std::vector<double> num(C), out(C), g(C);
+    for (int64_t e = 0; e < M; ++e) {
+      Reads r = reads_of(static_cast<double>(pd[e]), K, false, d_grad);
+      double gu = 0, gv = 0, gs0 = 0, gs1 = 0, gs2 = 0, gm = 0, gscale = 0, gd = 0;
+      for (int j = 0; j < r.n; ++j) {
+        const int64_t k = r.k[j];
+        const Level& lv = L[k];
+        const EwaSetup q = ewa_setup(lv, k == K - 1, full_h, full_w, puv + 2 * e, ps + 3 * e,
+                                     static_cast<double>(pm[e]), static_cast<double>(psc[e]));
+        const scalar_t* p = lp[k];
+        const int wu = static_cast<int>(wrap_u), wv = static_cast<int>(wrap_v);
+        // Pass 1: this level's value out = num / den.
+        std::fill(num.begin(), num.end(), 0.0);
+        double den = 0;
+        ewa_texels(q, lv, wu, wv, [&](double, double, double, double w, int64_t at) {
+          for (int64_t c = 0; c < C; ++c) num[c] += w * (at >= 0 ? static_cast<double>(p[c * lv.plane + at]) : border);
+          den += w;
+        });
+        double dot = 0;  // sum_c grad_c * out_c, for d/dD
+        for (int64_t c = 0; c < C; ++c) {
+          out[c] = num[c] / den;
+          g[c] = static_cast<double>(pg[c * M + e]) * r.wt[j];  // d loss / d out (this level)
+          dot += static_cast<double>(pg[c * M + e]) * out[c];
+        }
+        gd += r.dwt[j] * dot;
+        if (need_levels && gp[k] == nullptr) {
+          gl[k] = torch::zeros_like(levels[k]);
+          gp[k] = gl[k].template data_ptr<scalar_t>();
+        }
+        // Pass 2: d out_c / d val = w / den; d out_c / d w = (val_c - out_c) / den.
+        double gsx = 0, gsy = 0, gxx = 0, gxy = 0, gyy = 0;
+        ewa_texels(q, lv, wu, wv, [&](double ss, double tt, double r2, double w, int64_t at) {
+          if (w <= 0) return;
+          double gw = 0;
+          for (int64_t c = 0; c < C; ++c) {
+            const double val = at >= 0 ? static_cast<double>(p[c * lv.plane + at]) : border;
+            gw += g[c] * (val - out[c]);
+            if (need_levels && at >= 0) gp[k][c * lv.plane + at] += static_cast<scalar_t>(g[c] * w / den);
+          }
+          // w = exp(-alpha r2) - exp(-alpha) where positive.
+          const double gr2 = gw / den * (-kAlpha) * std::exp(-kAlpha * r2) / q.det;
+          gsx += gr2 * (-2 * q.syy * ss + 2 * q.sxy * tt);
+          gsy += gr2 * (2 * q.sxy * ss - 2 * q.sxx * tt);
+          gxx += gr2 * (tt * tt - r2 * q.syy);
+          gyy += gr2 * (ss * ss - r2 * q.sxx);
+          gxy += gr2 * (-2 * ss * tt + 2 * r2 * q.sxy);
+        });
+        gu += gsx * static_cast<double>(lv.w);
+        gv += gsy * static_cast<double>(lv.h);
+        // sxx = sigma0 s^2 kx^2 + 1, sxy = sigma1 s^2 kx ky, syy = sigma2 s^2 ky^2 + 1
+        const double s2 = q.s * q.s;
+        gs0 += gxx * s2 * q.kx * q.kx;
+        gs1 += gxy * s2 * q.kx * q.ky;
+        gs2 += gyy * s2 * q.ky * q.ky;
+        const double g_s = 2 * q.s * (gxx * static_cast<double>(ps[3 * e]) * q.kx * q.kx +
+                                      gxy * static_cast<double>(ps[3 * e + 1]) * q.kx * q.ky +
+                                      gyy * static_cast<double>(ps[3 * e + 2]) * q.ky * q.ky);
+        if (q.capped) {  // s = cap / (minor max(kx, ky))
+          gm += -g_s * q.s / static_cast<double>(pm[e]);
+        } else {
+          gscale += g_s;
+        }
+      }
+      if (need_uv) {
+        guv.data_ptr<scalar_t>()[2 * e] = static_cast<scalar_t>(gu);
+        guv.data_ptr<scalar_t>()[2 * e + 1] = static_cast<scalar_t>(gv);
+      }
+      if (need_ellipse) {
+        scalar_t* gsp = gsig.data_ptr<scalar_t>() + 3 * e;
+        gsp[0] = static_cast<scalar_t>(gs0);
+        gsp[1] = static_cast<scalar_t>(gs1);
+        gsp[2] = static_cast<scalar_t>(gs2);
+        gmin.data_ptr<scalar_t>()[e] = static_cast<scalar_t>(gm);
+        gsc.data_ptr<scalar_t>()[e] = static_cast<scalar_t>(gscale);
+      }
+      if (need_D) gD.data_ptr<scalar_t>()[e] = static_cast<scalar_t>(gd);
+    }
+  });
+  return {gl, guv, gsig, gmin, gsc, gD};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &forward, "mip pyramid read, forward");
   m.def("backward", &backward, "mip pyramid read, first-order backward");
-  m.def("ewa", &ewa, "EWA filter, forward without gradients");
+  m.def("ewa", &ewa, "EWA filter, forward");
+  m.def("ewa_backward", &ewa_backward, "EWA filter, first-order backward");
   m.def("box2", &box2, "2 x 2 box step of an even level");
   m.def("front", &front, "mip level (and anisotropic / auto tap axis and count), no gradient");
 }

@@ -17,8 +17,9 @@ the texels inside the ellipses, at most about ``pi (2 max_aniso + 1) 3``
 per point and level. Pairs are processed in chunks of bounded size; with
 gradients and more than one chunk, each chunk is checkpointed (recomputed in
 the backward pass) so memory stays bounded too. Texels are read through ``difftex.wrap.wrap_index``.
-Where nothing needs a gradient, the CPU runs the same computation in the
-native kernel (``difftex.native``), point by point.
+On the CPU the same computation runs in the native kernel
+(``difftex.native``: point by point, forward and first-order backward);
+these torch ops are its reference and serve CUDA and double backward.
 
 Where the level is clamped at the coarsest level and the ellipse is still
 larger than a couple of texels there, it is shrunk (shape kept) to a minor
@@ -197,19 +198,66 @@ def ewa_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse
     sigma, minor, log2_minor = _covariance(fp, ell, max_aniso)
     D = level(log2_minor, lod_bias, len(levels))
     scale = torch.exp2(fp.log2_scale)
+    if basic.IMPL == "fast" and native.usable(uv):
+        out = _NativeEWA.apply(uv_safe, sigma, minor, scale, D, (H, W, wrap_u, wrap_v, float(border)), *levels)
+    else:
+        out = _ewa_torch(levels, uv_safe, sigma, minor, scale, D, H, W, wrap_u, wrap_v, border)
+    return torch.where(ok, out, torch.full_like(out, float("nan")))
+
+
+def _ewa_torch(levels: Sequence[Tensor], uv: Tensor, sigma: Tensor, minor: Tensor, scale: Tensor, D: Tensor,
+               H: int, W: int, wrap_u: str, wrap_v: str, border: float) -> Tensor:
+    """EWA in torch ops (the reference, and the path on CUDA and for double backward): [C, M]."""
     n = len(levels)
 
-    inputs = [uv_safe, sigma, minor, scale]
-    if (basic.IMPL == "fast" and native.usable(uv) and
-            not (torch.is_grad_enabled() and any(t.requires_grad for t in (*levels, *inputs, D)))):
-        # No gradient wanted (rendering, fit targets): the native kernel's forward, the same sums in
-        # one pass (3x faster measured; this torch path is its reference).
-        out = native.load().ewa([lv[0].contiguous() for lv in levels], *(t.contiguous() for t in inputs),
-                                D.contiguous(), H, W, native.WRAP_CODES[wrap_u], native.WRAP_CODES[wrap_v],
-                                float(border))
-    else:
-        def read(k: int, xs: list[Tensor]) -> Tensor:
-            return _ewa_level(levels[k], *xs, H, W, k == n - 1, wrap_u, wrap_v, border)
+    def read(k: int, xs: list[Tensor]) -> Tensor:
+        return _ewa_level(levels[k], *xs, H, W, k == n - 1, wrap_u, wrap_v, border)
 
-        out = mip_blend(D, n, inputs, per_level(read))
-    return torch.where(ok, out, torch.full_like(out, float("nan")))
+    return mip_blend(D, n, [uv, sigma, minor, scale], per_level(read))
+
+
+class _NativeEWA(torch.autograd.Function):
+    """EWA on the native CPU kernel (``difftex.native``), forward and first-order backward.
+
+    uv [M, 2] (periods dropped, finite), sigma [M, 3], minor [M], scale [M],
+    D [M], levels ``[1, C, H_k, W_k]`` -> [C, M]; the same values and
+    gradients as ``_ewa_torch`` (its reference).
+    """
+
+    @staticmethod
+    def forward(ctx, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Tensor, D: Tensor, opts: tuple,
+                *levels: Tensor) -> Tensor:
+        H, W, wrap_u, wrap_v, border = opts
+        ctx.opts = opts
+        ctx.d_grad = ctx.needs_input_grad[4]  # mip_blend reads the upper level at an integer D then too
+        ctx.save_for_backward(uv, sigma, minor, scale, D, *levels)
+        return native.load().ewa(*_ewa_args(levels, uv, sigma, minor, scale, D), H, W, native.WRAP_CODES[wrap_u],
+                                 native.WRAP_CODES[wrap_v], border, ctx.d_grad)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        uv, sigma, minor, scale, D, *levels = ctx.saved_tensors
+        H, W, wrap_u, wrap_v, border = ctx.opts
+        need = ctx.needs_input_grad
+        if torch.is_grad_enabled():
+            # Double backward (create_graph=True): the differentiable torch path.
+            inputs = [(i, t) for i, t in enumerate((uv, sigma, minor, scale, D, None, *levels)) if need[i]]
+            with torch.enable_grad():
+                out = _ewa_torch(levels, uv, sigma, minor, scale, D, H, W, wrap_u, wrap_v, border)
+            got = torch.autograd.grad(out, [t for _, t in inputs], grad, create_graph=True, allow_unused=True)
+            full: list[Tensor | None] = [None] * (6 + len(levels))
+            for (i, _), g in zip(inputs, got):
+                full[i] = g
+            return tuple(full)
+        need_levels = need[6:]
+        gl, guv, gsig, gmin, gsc, gD = native.load().ewa_backward(
+            *_ewa_args(levels, uv, sigma, minor, scale, D), grad, H, W, native.WRAP_CODES[wrap_u],
+            native.WRAP_CODES[wrap_v], border, ctx.d_grad, any(need_levels), need[0], any(need[1:4]), need[4])
+        return (guv if need[0] else None, gsig if need[1] else None, gmin if need[2] else None,
+                gsc if need[3] else None, gD if need[4] else None, None,
+                *(g.unsqueeze(0) if g is not None and n else None for g, n in zip(gl, need_levels)))
+
+
+def _ewa_args(levels, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Tensor, D: Tensor) -> tuple:
+    return ([lv[0].contiguous() for lv in levels], uv.contiguous(), sigma.contiguous(), minor.contiguous(),
+            scale.contiguous(), D.contiguous())
