@@ -1,17 +1,17 @@
-"""The native CPU kernel of the mip taps (``csrc/mip_read.cpp``): built on first use, optional.
+"""The native CPU kernel of the mip filters (``csrc/mip_read.cpp``): built on first use, optional.
 
 The trilinear / nearest-mip taps of a pyramid, one a point or N along the
 footprint's major axis (the trilinear, nearest-mip, anisotropic and auto
 filters), are one pass over the points in C++ on the CPU: no tap list, no
 sorting of points by level, no per-level passes, and a backward that
-touches only the texels read. The same module holds three smaller passes:
-the footprint front end of these filters (level, and the anisotropic /
-auto tap count and axis, per point) where no derivative needs a gradient,
-the EWA filter's forward where nothing needs one, and the 2 x 2 box step
-of the pyramid build. The torch path (``mip_blend`` over grid_sample,
-``filters/trilinear.py``; ``lod.py`` and the tap counts; ``filters/ewa.py``;
-``mipmap._box2``) stays the reference the tests compare it with, and runs
-wherever this kernel does not: on CUDA, for double backward, with
+touches only the texels read. EWA is one pass too, forward and backward.
+The same module holds two smaller passes: the footprint front end of the
+tap filters (level, and the anisotropic / auto tap count and axis, per
+point) where no derivative needs a gradient, and the 2 x 2 box step of the
+pyramid build. The torch path (``mip_blend`` over grid_sample,
+``filters/trilinear.py``; ``filters/ewa.py``; ``lod.py`` and the tap
+counts; ``mipmap._box2``) stays the reference the tests compare it with,
+and runs wherever this kernel does not: on CUDA, for double backward, with
 ``DIFFTEX_NATIVE=0`` in the environment, or where the build fails (no C++
 compiler or ninja), which is reported once as a warning.
 

@@ -57,7 +57,7 @@ with 0 auto equals anisotropic wherever the minor axis is at least half a texel.
 * Within 0.5 dB of anisotropic 16 on every scene above (worst -0.33 dB, the 5-degree spot plane), never
   more taps. On these scenes that leaves little to save: anisotropic's taps are nearly all needed for its
   accuracy, so auto takes 0-3 % fewer taps and its time is anisotropic's within this machine's noise
-  (forward+backward in speed_vs_accuracy.py's run: median 1.00x, 0.97-1.06x). It saves where footprints are magnified below half a texel (one read instead of anisotropic's two) or round:
+  (forward+backward in speed_vs_accuracy.py's runs: median 1.00-1.02x; single scenes 0.90-1.36x, the outliers on different scenes from run to run). It saves where footprints are magnified below half a texel (one read instead of anisotropic's two) or round:
   on a sphere magnified 4x (not in the table) auto reads half of anisotropic's taps, 56.7 vs 64.3 dB.
 * What the first version gave away: with tolerance 0.25 it took 7-10 % fewer taps on grazing planes but
   fell 2.1 dB under anisotropic 16 on the closed-form checker plane at 5 degrees (1.2 dB on the spot

@@ -113,7 +113,7 @@ def test_kernel_front_end_matches_the_reference(case, monkeypatch):
 
 @pytest.mark.parametrize("case", [i for i in range(96) if FILTERS[i % len(FILTERS)] in MIP])
 def test_kernel_forward_without_gradients_matches_the_reference(case, monkeypatch):
-    # No gradient at all (rendering): also EWA's forward runs on the kernel.
+    # No gradient at all (rendering): the values alone, through the kernels' no-gradient paths.
     if native.load() is None:
         pytest.skip("native kernel not built here (no compiler or ninja)")
     cfg = _config(case)

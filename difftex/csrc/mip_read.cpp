@@ -21,9 +21,9 @@
 // constant is read fixed at compile time (measured: 20-30% faster than
 // double arithmetic with run-time checks, float32, 3 channels).
 //
-// Also here, all without gradients: the footprint front end of the
-// bilinear-tap mip filters (front), the EWA filter's forward (ewa) and the
-// pyramid's 2 x 2 box step (box2).
+// Also here: the EWA filter, forward and first-order backward (ewa,
+// ewa_backward); and, without gradients, the footprint front end of the
+// bilinear-tap mip filters (front) and the pyramid's 2 x 2 box step (box2).
 #include <torch/extension.h>
 
 #include <algorithm>
