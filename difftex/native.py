@@ -26,6 +26,7 @@ import sys
 import warnings
 from pathlib import Path
 from types import ModuleType
+from typing import Callable, Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -73,3 +74,21 @@ def load() -> ModuleType | None:
                       stacklevel=2)
         _module = None
     return _module
+
+
+def double_backward(recompute: Callable[[], Tensor], saved: Sequence[Optional[Tensor]], need: Sequence[bool],
+                    grad: Tensor) -> tuple:
+    """A kernel node's backward under ``create_graph=True``: the gradients of the differentiable torch path.
+
+    ``recompute()`` evaluates the node's output from ``saved`` (its inputs, in
+    order; None for non-tensor ones) with torch ops; returns one gradient per
+    input, None where ``need`` is False, each itself differentiable.
+    """
+    inputs = [(i, t) for i, t in enumerate(saved) if need[i] and t is not None]
+    with torch.enable_grad():
+        out = recompute()
+    got = torch.autograd.grad(out, [t for _, t in inputs], grad, create_graph=True, allow_unused=True)
+    full: list[Optional[Tensor]] = [None] * len(saved)
+    for (i, _), g in zip(inputs, got):
+        full[i] = g
+    return tuple(full)

@@ -241,14 +241,9 @@ class _NativeEWA(torch.autograd.Function):
         need = ctx.needs_input_grad
         if torch.is_grad_enabled():
             # Double backward (create_graph=True): the differentiable torch path.
-            inputs = [(i, t) for i, t in enumerate((uv, sigma, minor, scale, D, None, *levels)) if need[i]]
-            with torch.enable_grad():
-                out = _ewa_torch(levels, uv, sigma, minor, scale, D, H, W, wrap_u, wrap_v, border)
-            got = torch.autograd.grad(out, [t for _, t in inputs], grad, create_graph=True, allow_unused=True)
-            full: list[Tensor | None] = [None] * (6 + len(levels))
-            for (i, _), g in zip(inputs, got):
-                full[i] = g
-            return tuple(full)
+            return native.double_backward(
+                lambda: _ewa_torch(levels, uv, sigma, minor, scale, D, H, W, wrap_u, wrap_v, border),
+                (uv, sigma, minor, scale, D, None, *levels), need, grad)
         need_levels = need[6:]
         gl, guv, gsig, gmin, gsc, gD = native.load().ewa_backward(
             *_ewa_args(levels, uv, sigma, minor, scale, D), grad, H, W, native.WRAP_CODES[wrap_u],

@@ -156,14 +156,9 @@ class _NativeTaps(torch.autograd.Function):
         need_uv, need_D, need_axis, need_levels = need[0], need[1] and not nearest, need[2], need[5:]
         if torch.is_grad_enabled():
             # Double backward (create_graph=True): the differentiable torch path.
-            inputs = [(i, t) for i, t in enumerate((uv, D, axis, None, None, *levels)) if need[i] and t is not None]
-            with torch.enable_grad():
-                out = _torch_taps(levels, uv, D, wrap_u, wrap_v, border, nearest, axis, count)
-            got = torch.autograd.grad(out, [t for _, t in inputs], grad, create_graph=True, allow_unused=True)
-            full: list[Tensor | None] = [None] * (5 + len(levels))
-            for (i, _), g in zip(inputs, got):
-                full[i] = g
-            return tuple(full)
+            return native.double_backward(
+                lambda: _torch_taps(levels, uv, D, wrap_u, wrap_v, border, nearest, axis, count),
+                (uv, D, axis, None, None, *levels), need, grad)
         gl, guv, gD, gax = native.load().backward(
             *_native_args(levels, uv, D, axis, count), grad, native.WRAP_CODES[wrap_u], native.WRAP_CODES[wrap_v],
             border, nearest, ctx.d_grad, any(need_levels), need_uv, need_D, need_axis and ctx.taps)
