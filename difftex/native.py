@@ -67,7 +67,11 @@ def load() -> ModuleType | None:
             print("difftex: building the native CPU kernel (first use only, about a minute; "
                   "DIFFTEX_NATIVE=0 skips it)...", file=sys.stderr, flush=True)
         flags = ["/O2"] if os.name == "nt" else ["-O3"]  # MSVC spells it differently
-        _module = cpp_extension.load(name=_NAME, sources=[str(_SOURCE)], extra_cflags=flags, verbose=False)
+        # at::parallel_for runs serially unless the extension itself is built with OpenMP (as torch is
+        # on Linux); elsewhere the kernel stays single-threaded rather than depend on a libomp install.
+        omp = ["-fopenmp"] if sys.platform.startswith("linux") else []
+        _module = cpp_extension.load(name=_NAME, sources=[str(_SOURCE)], extra_cflags=flags + omp,
+                                     extra_ldflags=omp, verbose=False)
     except Exception as exc:  # no compiler, no ninja, a failed build: the torch path serves
         warnings.warn(f"difftex: native CPU kernel unavailable, using the torch path ({type(exc).__name__}: "
                       f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else exc})", RuntimeWarning,

@@ -729,7 +729,8 @@ torch::Tensor ewa(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Te
 
 // First-order backward: (level gradients, undefined where unread or not
 // needed; uv [M, 2]; sigma [M, 3]; minor [M]; scale [M]; D [M]); each
-// undefined where not needed. Serial: the texture gradient is a scatter.
+// undefined where not needed. The points are split into up to 4 chunks run
+// in parallel, each scattering its texture gradient into its own buffers.
 std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor>
 ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor sigma, torch::Tensor minor,
              torch::Tensor scale, torch::Tensor D, torch::Tensor grad, int64_t full_h, int64_t full_w,
@@ -751,87 +752,113 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_ewa_backward", [&] {
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
-    std::vector<scalar_t*> gp(K, nullptr);
     const scalar_t *puv = uv.data_ptr<scalar_t>(), *ps = sigma.data_ptr<scalar_t>();
     const scalar_t *pm = minor.data_ptr<scalar_t>(), *psc = scale.data_ptr<scalar_t>(), *pd = D.data_ptr<scalar_t>();
     const scalar_t* pg = grad.data_ptr<scalar_t>();
-    std::vector<double> num(C), out(C), g(C);
+    // Points [lo, hi) scattering their texture gradient into gp (one
+    // buffer set per chunk of points, so that chunks run in parallel).
+    auto run = [&](int64_t lo, int64_t hi, const std::vector<scalar_t*>& gp) {
+      std::vector<double> num(C), out(C), g(C);
+      for (int64_t e = lo; e < hi; ++e) {
+        Reads r = reads_of(static_cast<double>(pd[e]), K, false, d_grad);
+        double gu = 0, gv = 0, gs0 = 0, gs1 = 0, gs2 = 0, gm = 0, gscale = 0, gd = 0;
+        for (int j = 0; j < r.n; ++j) {
+          const int64_t k = r.k[j];
+          const Level& lv = L[k];
+          const EwaSetup q = ewa_setup(lv, k == K - 1, full_h, full_w, puv + 2 * e, ps + 3 * e,
+                                       static_cast<double>(pm[e]), static_cast<double>(psc[e]));
+          const scalar_t* p = lp[k];
+          const int wu = static_cast<int>(wrap_u), wv = static_cast<int>(wrap_v);
+          // Pass 1: this level's value out = num / den.
+          std::fill(num.begin(), num.end(), 0.0);
+          double den = 0;
+          ewa_texels(q, lv, wu, wv, [&](double, double, double, double w, int64_t at) {
+            for (int64_t c = 0; c < C; ++c) num[c] += w * (at >= 0 ? static_cast<double>(p[c * lv.plane + at]) : border);
+            den += w;
+          });
+          double dot = 0;  // sum_c grad_c * out_c, for d/dD
+          for (int64_t c = 0; c < C; ++c) {
+            out[c] = num[c] / den;
+            g[c] = static_cast<double>(pg[c * M + e]) * r.wt[j];  // d loss / d out (this level)
+            dot += static_cast<double>(pg[c * M + e]) * out[c];
+          }
+          gd += r.dwt[j] * dot;
+          // Pass 2: d out_c / d val = w / den; d out_c / d w = (val_c - out_c) / den.
+          double gsx = 0, gsy = 0, gxx = 0, gxy = 0, gyy = 0;
+          ewa_texels(q, lv, wu, wv, [&](double ss, double tt, double r2, double w, int64_t at) {
+            if (w <= 0) return;
+            double gw = 0;
+            for (int64_t c = 0; c < C; ++c) {
+              const double val = at >= 0 ? static_cast<double>(p[c * lv.plane + at]) : border;
+              gw += g[c] * (val - out[c]);
+              if (need_levels && at >= 0) gp[k][c * lv.plane + at] += static_cast<scalar_t>(g[c] * w / den);
+            }
+            // w = exp(-alpha r2) - exp(-alpha) where positive.
+            const double gr2 = gw / den * (-kAlpha) * std::exp(-kAlpha * r2) / q.det;
+            gsx += gr2 * (-2 * q.syy * ss + 2 * q.sxy * tt);
+            gsy += gr2 * (2 * q.sxy * ss - 2 * q.sxx * tt);
+            gxx += gr2 * (tt * tt - r2 * q.syy);
+            gyy += gr2 * (ss * ss - r2 * q.sxx);
+            gxy += gr2 * (-2 * ss * tt + 2 * r2 * q.sxy);
+          });
+          gu += gsx * static_cast<double>(lv.w);
+          gv += gsy * static_cast<double>(lv.h);
+          // sxx = sigma0 s^2 kx^2 + 1, sxy = sigma1 s^2 kx ky, syy = sigma2 s^2 ky^2 + 1
+          const double s2 = q.s * q.s;
+          gs0 += gxx * s2 * q.kx * q.kx;
+          gs1 += gxy * s2 * q.kx * q.ky;
+          gs2 += gyy * s2 * q.ky * q.ky;
+          const double g_s = 2 * q.s * (gxx * static_cast<double>(ps[3 * e]) * q.kx * q.kx +
+                                        gxy * static_cast<double>(ps[3 * e + 1]) * q.kx * q.ky +
+                                        gyy * static_cast<double>(ps[3 * e + 2]) * q.ky * q.ky);
+          if (q.capped) {  // s = cap / (minor max(kx, ky))
+            gm += -g_s * q.s / static_cast<double>(pm[e]);
+          } else {
+            gscale += g_s;
+          }
+        }
+        if (need_uv) {
+          guv.data_ptr<scalar_t>()[2 * e] = static_cast<scalar_t>(gu);
+          guv.data_ptr<scalar_t>()[2 * e + 1] = static_cast<scalar_t>(gv);
+        }
+        if (need_ellipse) {
+          scalar_t* gsp = gsig.data_ptr<scalar_t>() + 3 * e;
+          gsp[0] = static_cast<scalar_t>(gs0);
+          gsp[1] = static_cast<scalar_t>(gs1);
+          gsp[2] = static_cast<scalar_t>(gs2);
+          gmin.data_ptr<scalar_t>()[e] = static_cast<scalar_t>(gm);
+          gsc.data_ptr<scalar_t>()[e] = static_cast<scalar_t>(gscale);
+        }
+        if (need_D) gD.data_ptr<scalar_t>()[e] = static_cast<scalar_t>(gd);
+      }
+    };
+    // Level gradients only for the levels some point reads; one set per
+    // chunk (at most 4 chunks: each set costs a texture-sized buffer), summed after.
+    std::vector<bool> read(K, false);
     for (int64_t e = 0; e < M; ++e) {
       Reads r = reads_of(static_cast<double>(pd[e]), K, false, d_grad);
-      double gu = 0, gv = 0, gs0 = 0, gs1 = 0, gs2 = 0, gm = 0, gscale = 0, gd = 0;
-      for (int j = 0; j < r.n; ++j) {
-        const int64_t k = r.k[j];
-        const Level& lv = L[k];
-        const EwaSetup q = ewa_setup(lv, k == K - 1, full_h, full_w, puv + 2 * e, ps + 3 * e,
-                                     static_cast<double>(pm[e]), static_cast<double>(psc[e]));
-        const scalar_t* p = lp[k];
-        const int wu = static_cast<int>(wrap_u), wv = static_cast<int>(wrap_v);
-        // Pass 1: this level's value out = num / den.
-        std::fill(num.begin(), num.end(), 0.0);
-        double den = 0;
-        ewa_texels(q, lv, wu, wv, [&](double, double, double, double w, int64_t at) {
-          for (int64_t c = 0; c < C; ++c) num[c] += w * (at >= 0 ? static_cast<double>(p[c * lv.plane + at]) : border);
-          den += w;
-        });
-        double dot = 0;  // sum_c grad_c * out_c, for d/dD
-        for (int64_t c = 0; c < C; ++c) {
-          out[c] = num[c] / den;
-          g[c] = static_cast<double>(pg[c * M + e]) * r.wt[j];  // d loss / d out (this level)
-          dot += static_cast<double>(pg[c * M + e]) * out[c];
-        }
-        gd += r.dwt[j] * dot;
-        if (need_levels && gp[k] == nullptr) {
-          gl[k] = torch::zeros_like(levels[k]);
-          gp[k] = gl[k].template data_ptr<scalar_t>();
-        }
-        // Pass 2: d out_c / d val = w / den; d out_c / d w = (val_c - out_c) / den.
-        double gsx = 0, gsy = 0, gxx = 0, gxy = 0, gyy = 0;
-        ewa_texels(q, lv, wu, wv, [&](double ss, double tt, double r2, double w, int64_t at) {
-          if (w <= 0) return;
-          double gw = 0;
-          for (int64_t c = 0; c < C; ++c) {
-            const double val = at >= 0 ? static_cast<double>(p[c * lv.plane + at]) : border;
-            gw += g[c] * (val - out[c]);
-            if (need_levels && at >= 0) gp[k][c * lv.plane + at] += static_cast<scalar_t>(g[c] * w / den);
-          }
-          // w = exp(-alpha r2) - exp(-alpha) where positive.
-          const double gr2 = gw / den * (-kAlpha) * std::exp(-kAlpha * r2) / q.det;
-          gsx += gr2 * (-2 * q.syy * ss + 2 * q.sxy * tt);
-          gsy += gr2 * (2 * q.sxy * ss - 2 * q.sxx * tt);
-          gxx += gr2 * (tt * tt - r2 * q.syy);
-          gyy += gr2 * (ss * ss - r2 * q.sxx);
-          gxy += gr2 * (-2 * ss * tt + 2 * r2 * q.sxy);
-        });
-        gu += gsx * static_cast<double>(lv.w);
-        gv += gsy * static_cast<double>(lv.h);
-        // sxx = sigma0 s^2 kx^2 + 1, sxy = sigma1 s^2 kx ky, syy = sigma2 s^2 ky^2 + 1
-        const double s2 = q.s * q.s;
-        gs0 += gxx * s2 * q.kx * q.kx;
-        gs1 += gxy * s2 * q.kx * q.ky;
-        gs2 += gyy * s2 * q.ky * q.ky;
-        const double g_s = 2 * q.s * (gxx * static_cast<double>(ps[3 * e]) * q.kx * q.kx +
-                                      gxy * static_cast<double>(ps[3 * e + 1]) * q.kx * q.ky +
-                                      gyy * static_cast<double>(ps[3 * e + 2]) * q.ky * q.ky);
-        if (q.capped) {  // s = cap / (minor max(kx, ky))
-          gm += -g_s * q.s / static_cast<double>(pm[e]);
-        } else {
-          gscale += g_s;
-        }
-      }
-      if (need_uv) {
-        guv.data_ptr<scalar_t>()[2 * e] = static_cast<scalar_t>(gu);
-        guv.data_ptr<scalar_t>()[2 * e + 1] = static_cast<scalar_t>(gv);
-      }
-      if (need_ellipse) {
-        scalar_t* gsp = gsig.data_ptr<scalar_t>() + 3 * e;
-        gsp[0] = static_cast<scalar_t>(gs0);
-        gsp[1] = static_cast<scalar_t>(gs1);
-        gsp[2] = static_cast<scalar_t>(gs2);
-        gmin.data_ptr<scalar_t>()[e] = static_cast<scalar_t>(gm);
-        gsc.data_ptr<scalar_t>()[e] = static_cast<scalar_t>(gscale);
-      }
-      if (need_D) gD.data_ptr<scalar_t>()[e] = static_cast<scalar_t>(gd);
+      for (int j = 0; j < r.n; ++j) read[r.k[j]] = true;
     }
+    const int64_t chunks = std::max<int64_t>(1, std::min<int64_t>({static_cast<int64_t>(at::get_num_threads()),
+                                                                    4, M / 4096}));
+    std::vector<std::vector<torch::Tensor>> bufs(chunks, std::vector<torch::Tensor>(K));
+    std::vector<std::vector<scalar_t*>> ptrs(chunks, std::vector<scalar_t*>(K, nullptr));
+    if (need_levels)
+      for (int64_t c = 0; c < chunks; ++c)
+        for (int64_t k = 0; k < K; ++k)
+          if (read[k]) {
+            bufs[c][k] = torch::zeros_like(levels[k]);
+            ptrs[c][k] = bufs[c][k].template data_ptr<scalar_t>();
+          }
+    at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+      for (int64_t c = c0; c < c1; ++c) run(c * M / chunks, (c + 1) * M / chunks, ptrs[c]);
+    });
+    if (need_levels)
+      for (int64_t k = 0; k < K; ++k) {
+        if (!read[k]) continue;
+        for (int64_t c = 1; c < chunks; ++c) bufs[0][k].add_(bufs[c][k]);
+        gl[k] = bufs[0][k];
+      }
   });
   return {gl, guv, gsig, gmin, gsc, gD};
 }
