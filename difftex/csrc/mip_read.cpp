@@ -46,26 +46,28 @@ namespace {
 
 enum Wrap { REPEAT = 0, CLAMP = 1, MIRROR = 2, BORDER = 3 };
 
+// 2^52: from here on a double has no fractional part.
+constexpr double kTwo52 = 4503599627370496.0;
+
 // floor(x) without std::floor (a library call without SSE4.1): below 2^51
 // rounded to nearest by adding and subtracting 1.5 * 2^52, then stepped
 // down where that rounded up (no integer round trip: 10% off the backward);
 // above, through an integer truncation. Capped at +-2^52, where no fraction
 // is left anyway; NaN gives -2^52 (callers test finiteness).
 DT_INLINE double floor_capped(double x) {
-  const double cap = 4503599627370496.0;
-  if (std::abs(x) < 0.5 * cap) {
-    const double r = (x + 1.5 * cap) - 1.5 * cap;
+  if (std::abs(x) < 0.5 * kTwo52) {
+    const double r = (x + 1.5 * kTwo52) - 1.5 * kTwo52;
     return r - (r > x ? 1.0 : 0.0);
   }
-  if (!(x > -cap)) return -cap;
-  if (!(x < cap)) return cap;
+  if (!(x > -kTwo52)) return -kTwo52;
+  if (!(x < kTwo52)) return kTwo52;
   double t = static_cast<double>(static_cast<int64_t>(x));
   return t > x ? t - 1.0 : t;
 }
 
 // x - floor(x) in [0, 1); 0 from 2^52 on, where doubles are integers.
 DT_INLINE double frac(double x) {
-  return std::abs(x) < 4503599627370496.0 ? x - floor_capped(x) : 0.0;
+  return std::abs(x) < kTwo52 ? x - floor_capped(x) : 0.0;
 }
 
 // One axis of a bilinear read: the two texels (and whether each is a texel
@@ -576,8 +578,7 @@ torch::Tensor box2(torch::Tensor x) {
 
 // An integral double as int64, capped at +-2^52 (wrap.py floor_index).
 DT_INLINE int64_t index_of(double x) {
-  const double cap = 4503599627370496.0;
-  return static_cast<int64_t>(x < -cap ? -cap : (x > cap ? cap : x));
+  return static_cast<int64_t>(x < -kTwo52 ? -kTwo52 : (x > kTwo52 ? kTwo52 : x));
 }
 
 // Integer texel index of one axis wrapped into [0, n) as wrap.py's
@@ -642,8 +643,8 @@ DT_INLINE EwaSetup ewa_setup(const Level& lv, bool coarsest, int64_t full_h, int
   q.det = q.sxx * q.syy - q.sxy * q.sxy;
   const double posx = static_cast<double>(uv[0]) * wk - 0.5, posy = static_cast<double>(uv[1]) * hk - 0.5;
   // Integer origin + fraction (no fraction left from 2^52 on, as in torch).
-  q.ox = std::abs(posx) < 4503599627370496.0 ? floor_capped(posx) : posx;
-  q.oy = std::abs(posy) < 4503599627370496.0 ? floor_capped(posy) : posy;
+  q.ox = std::abs(posx) < kTwo52 ? floor_capped(posx) : posx;
+  q.oy = std::abs(posy) < kTwo52 ? floor_capped(posy) : posy;
   q.sx = posx - q.ox;
   q.sy = posy - q.oy;
   return q;
@@ -673,6 +674,20 @@ DT_INLINE void ewa_texels(const EwaSetup& q, const Level& lv, int wrap_u, int wr
       f(ss, tt, r2, w, vx && vy ? iy * lv.w + ix : -1);
     }
   }
+}
+
+// One level's EWA value: num[c] = sum of w * texel, returns den = sum of w
+// (the value is num / den).
+template <typename scalar_t>
+DT_INLINE double ewa_sums(const EwaSetup& q, const Level& lv, const scalar_t* p, int64_t C, int wrap_u, int wrap_v,
+                          double border, std::vector<double>& num) {
+  std::fill(num.begin(), num.end(), 0.0);
+  double den = 0;
+  ewa_texels(q, lv, wrap_u, wrap_v, [&](double, double, double, double w, int64_t at) {
+    for (int64_t c = 0; c < C; ++c) num[c] += w * (at >= 0 ? static_cast<double>(p[c * lv.plane + at]) : border);
+    den += w;
+  });
+  return den;
 }
 
 void ewa_checks(const torch::Tensor& uv, const torch::Tensor& sigma, const torch::Tensor& minor,
@@ -709,15 +724,8 @@ torch::Tensor ewa(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Te
           const Level& lv = L[r.k[j]];
           const EwaSetup q = ewa_setup(lv, r.k[j] == K - 1, full_h, full_w, puv + 2 * e, ps + 3 * e,
                                        static_cast<double>(pm[e]), static_cast<double>(psc[e]));
-          const scalar_t* p = lp[r.k[j]];
-          std::fill(num.begin(), num.end(), 0.0);
-          double den = 0;
-          ewa_texels(q, lv, static_cast<int>(wrap_u), static_cast<int>(wrap_v),
-                     [&](double, double, double, double w, int64_t at) {
-                       for (int64_t c = 0; c < C; ++c)
-                         num[c] += w * (at >= 0 ? static_cast<double>(p[c * lv.plane + at]) : border);
-                       den += w;
-                     });
+          const double den = ewa_sums(q, lv, lp[r.k[j]], C, static_cast<int>(wrap_u), static_cast<int>(wrap_v),
+                                      border, num);
           for (int64_t c = 0; c < C; ++c) acc[c] += r.wt[j] * (num[c] / den);
         }
         for (int64_t c = 0; c < C; ++c) po[c * M + e] = static_cast<scalar_t>(acc[c]);
@@ -755,6 +763,11 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
     const scalar_t *puv = uv.data_ptr<scalar_t>(), *ps = sigma.data_ptr<scalar_t>();
     const scalar_t *pm = minor.data_ptr<scalar_t>(), *psc = scale.data_ptr<scalar_t>(), *pd = D.data_ptr<scalar_t>();
     const scalar_t* pg = grad.data_ptr<scalar_t>();
+    scalar_t* o_uv = need_uv ? guv.data_ptr<scalar_t>() : nullptr;
+    scalar_t* o_sig = need_ellipse ? gsig.data_ptr<scalar_t>() : nullptr;
+    scalar_t* o_min = need_ellipse ? gmin.data_ptr<scalar_t>() : nullptr;
+    scalar_t* o_sc = need_ellipse ? gsc.data_ptr<scalar_t>() : nullptr;
+    scalar_t* o_D = need_D ? gD.data_ptr<scalar_t>() : nullptr;
     // Points [lo, hi) scattering their texture gradient into gp (one
     // buffer set per chunk of points, so that chunks run in parallel).
     auto run = [&](int64_t lo, int64_t hi, const std::vector<scalar_t*>& gp) {
@@ -770,12 +783,7 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
           const scalar_t* p = lp[k];
           const int wu = static_cast<int>(wrap_u), wv = static_cast<int>(wrap_v);
           // Pass 1: this level's value out = num / den.
-          std::fill(num.begin(), num.end(), 0.0);
-          double den = 0;
-          ewa_texels(q, lv, wu, wv, [&](double, double, double, double w, int64_t at) {
-            for (int64_t c = 0; c < C; ++c) num[c] += w * (at >= 0 ? static_cast<double>(p[c * lv.plane + at]) : border);
-            den += w;
-          });
+          const double den = ewa_sums(q, lv, p, C, wu, wv, border, num);
           double dot = 0;  // sum_c grad_c * out_c, for d/dD
           for (int64_t c = 0; c < C; ++c) {
             out[c] = num[c] / den;
@@ -817,25 +825,24 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
             gscale += g_s;
           }
         }
-        if (need_uv) {
-          guv.data_ptr<scalar_t>()[2 * e] = static_cast<scalar_t>(gu);
-          guv.data_ptr<scalar_t>()[2 * e + 1] = static_cast<scalar_t>(gv);
+        if (o_uv) {
+          o_uv[2 * e] = static_cast<scalar_t>(gu);
+          o_uv[2 * e + 1] = static_cast<scalar_t>(gv);
         }
-        if (need_ellipse) {
-          scalar_t* gsp = gsig.data_ptr<scalar_t>() + 3 * e;
-          gsp[0] = static_cast<scalar_t>(gs0);
-          gsp[1] = static_cast<scalar_t>(gs1);
-          gsp[2] = static_cast<scalar_t>(gs2);
-          gmin.data_ptr<scalar_t>()[e] = static_cast<scalar_t>(gm);
-          gsc.data_ptr<scalar_t>()[e] = static_cast<scalar_t>(gscale);
+        if (o_sig) {
+          o_sig[3 * e] = static_cast<scalar_t>(gs0);
+          o_sig[3 * e + 1] = static_cast<scalar_t>(gs1);
+          o_sig[3 * e + 2] = static_cast<scalar_t>(gs2);
+          o_min[e] = static_cast<scalar_t>(gm);
+          o_sc[e] = static_cast<scalar_t>(gscale);
         }
-        if (need_D) gD.data_ptr<scalar_t>()[e] = static_cast<scalar_t>(gd);
+        if (o_D) o_D[e] = static_cast<scalar_t>(gd);
       }
     };
     // Level gradients only for the levels some point reads; one set per
     // chunk (at most 4 chunks: each set costs a texture-sized buffer), summed after.
     std::vector<bool> read(K, false);
-    for (int64_t e = 0; e < M; ++e) {
+    for (int64_t e = 0; need_levels && e < M; ++e) {
       Reads r = reads_of(static_cast<double>(pd[e]), K, false, d_grad);
       for (int j = 0; j < r.n; ++j) read[r.k[j]] = true;
     }
