@@ -271,11 +271,11 @@ def levels_needed(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Te
     Not differentiable (a count). Zero / NaN derivatives count as level 0,
     infinite ones as the coarsest level. Raises ValueError / TypeError
     naming the argument on bad shapes, dtypes, an unknown filter,
-    ``max_aniso < 1`` or ``tolerance < 0``.
+    ``max_aniso`` outside [1, 1024] or ``tolerance < 0``.
     """
     from ._checks import broadcast_batch, check_float, check_same
     from .mipmap import level_count
-    from .sample import DEFAULT_TOLERANCE, FILTERS, MIP_FILTERS, _check_number, _levels_read, _taps
+    from .sample import DEFAULT_TOLERANCE, FILTERS, MAX_ANISO, MIP_FILTERS, _check_number, _levels_read, _taps
     check_float("uv_dx", uv_dx, 4, last=2, shape_doc="[B, Ho, Wo, 2]")
     check_float("uv_dy", uv_dy, 4, last=2, shape_doc="[B, Ho, Wo, 2]")
     check_same("uv_dy", uv_dy, "uv_dx", uv_dx)
@@ -284,7 +284,7 @@ def levels_needed(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Te
                          f"got {tuple(uv_dy.shape)}")
     if not isinstance(filter, str) or filter not in FILTERS:
         raise ValueError(f"filter: unknown filter {filter!r}; expected one of {FILTERS}")
-    max_aniso = _check_number("max_aniso", max_aniso, 1)
+    max_aniso = _check_number("max_aniso", max_aniso, 1, MAX_ANISO)
     tolerance = _check_number("tolerance", DEFAULT_TOLERANCE if tolerance is None else tolerance, 0)
     H, W, full = _size_and_levels(texture_size)
     if full is None:

@@ -27,6 +27,10 @@ MIP_FILTERS = ("trilinear", "nearest-mip", "anisotropic", "ewa", "auto")
 # Default of ``tolerance`` ("auto"): within 0.5 dB of anisotropic 16 on every
 # scene of experiments/speed_vs_accuracy.py (filters/auto.py).
 DEFAULT_TOLERANCE = 0.1
+# Largest max_aniso. A rank-1 or grazing footprint takes max_aniso taps (EWA:
+# an ellipse max_aniso times longer than wide), so this bounds the work per
+# point: 1024 trilinear taps, about 20k texels for EWA. (GPUs stop at 16.)
+MAX_ANISO = 1024
 FILTERS = tuple(SEPARABLE) + MIP_FILTERS
 
 
@@ -76,7 +80,7 @@ def sample(
             broadcasts.
         lod_bias: added to the level; a number or a [B, Ho, Wo] tensor.
         max_aniso: most taps per pixel ("anisotropic", "auto"), largest
-            axis ratio kept ("ewa"); a number >= 1.
+            axis ratio kept ("ewa"); a number in [1, 1024].
         tolerance: "auto" only: how much wider a tap's prefilter (2^level)
             may be than the anisotropic filter's, as a fraction; a number
             >= 0. 0 takes the anisotropic filter's taps (fewer only where
@@ -99,7 +103,7 @@ def sample(
 
     Raises ValueError naming the argument on bad shapes, batch mismatch,
     different devices, an unknown filter / wrap, missing derivatives for a
-    mip filter, ``max_aniso < 1`` or ``tolerance < 0``; TypeError on
+    mip filter, ``max_aniso`` outside [1, 1024] or ``tolerance < 0``; TypeError on
     non-float tensors or mixed dtypes.
     """
     pyramid = None
@@ -114,7 +118,7 @@ def sample(
     wrap_u, wrap_v = parse_wrap(wrap)
     if not isinstance(filter, str) or filter not in FILTERS:
         raise ValueError(f"filter: unknown filter {filter!r}; expected one of {FILTERS}")
-    max_aniso = _check_number("max_aniso", max_aniso, 1)
+    max_aniso = _check_number("max_aniso", max_aniso, 1, MAX_ANISO)
     tolerance = _check_number("tolerance", tolerance, 0)
     _, Ho, Wo, _ = uv.shape
     derivs = _check_derivatives(filter, uv, texture, uv_dx, uv_dy)
@@ -191,12 +195,13 @@ def _taps(filter: str, dx: Tensor, dy: Tensor, bias: Union[float, Tensor], heigh
     return anisotropic_taps(fp, ell, n, bias, levels, height, width)
 
 
-def _check_number(name: str, value: object, minimum: float) -> float:
-    """A finite real >= minimum, as float; TypeError / ValueError naming ``name`` otherwise."""
+def _check_number(name: str, value: object, minimum: float, maximum: float = math.inf) -> float:
+    """A finite real in [minimum, maximum], as float; TypeError / ValueError naming ``name`` otherwise."""
+    want = f">= {minimum:g}" if maximum == math.inf else f"in [{minimum:g}, {maximum:g}]"
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name}: expected a number >= {minimum:g}, got {type(value).__name__}")
-    if not (math.isfinite(value) and value >= minimum):
-        raise ValueError(f"{name}: expected a finite number >= {minimum:g}, got {value!r}")
+        raise TypeError(f"{name}: expected a number {want}, got {type(value).__name__}")
+    if not (math.isfinite(value) and minimum <= value <= maximum):
+        raise ValueError(f"{name}: expected a finite number {want}, got {value!r}")
     return float(value)
 
 

@@ -298,8 +298,9 @@ def test_levels_needed_bad_input():
         levels_needed(torch.zeros(2, 4, 5, 2), torch.zeros(3, 4, 5, 2), (8, 8))
     with pytest.raises(TypeError, match="uv_dx"):
         levels_needed(d.long(), d, (8, 8))
-    with pytest.raises(ValueError, match="max_aniso"):
-        levels_needed(d, d, (8, 8), max_aniso=0.5)
+    for bad in (0.5, 2000):
+        with pytest.raises(ValueError, match=r"max_aniso: expected a finite number in \[1, 1024\]"):
+            levels_needed(d, d, (8, 8), max_aniso=bad)
     with pytest.raises(ValueError, match="tolerance"):
         levels_needed(d, d, (8, 8), filter="auto", tolerance=-1)
     with pytest.raises(ValueError, match="lod_bias"):
