@@ -676,16 +676,25 @@ DT_INLINE void ewa_texels(const EwaSetup& q, const Level& lv, int wrap_u, int wr
   }
 }
 
+// A texel with a positive EWA weight, as ewa_texels reports it.
+struct EwaTexel {
+  double ss, tt, r2, w;
+  int64_t at;
+};
+
 // One level's EWA value: num[c] = sum of w * texel, returns den = sum of w
-// (the value is num / den).
+// (the value is num / den). With kept, also the texels of positive weight
+// (the backward's second pass walks them instead of the ellipse again).
 template <typename scalar_t>
 DT_INLINE double ewa_sums(const EwaSetup& q, const Level& lv, const scalar_t* p, int64_t C, int wrap_u, int wrap_v,
-                          double border, std::vector<double>& num) {
+                          double border, std::vector<double>& num, std::vector<EwaTexel>* kept = nullptr) {
   std::fill(num.begin(), num.end(), 0.0);
+  if (kept) kept->clear();
   double den = 0;
-  ewa_texels(q, lv, wrap_u, wrap_v, [&](double, double, double, double w, int64_t at) {
+  ewa_texels(q, lv, wrap_u, wrap_v, [&](double ss, double tt, double r2, double w, int64_t at) {
     for (int64_t c = 0; c < C; ++c) num[c] += w * (at >= 0 ? static_cast<double>(p[c * lv.plane + at]) : border);
     den += w;
+    if (kept && w > 0) kept->push_back({ss, tt, r2, w, at});
   });
   return den;
 }
@@ -772,6 +781,8 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
     // buffer set per chunk of points, so that chunks run in parallel).
     auto run = [&](int64_t lo, int64_t hi, const std::vector<scalar_t*>& gp) {
       std::vector<double> num(C), out(C), g(C);
+      std::vector<EwaTexel> kept;
+      const double floor_w = std::exp(-kAlpha);
       for (int64_t e = lo; e < hi; ++e) {
         Reads r = reads_of(static_cast<double>(pd[e]), K, false, d_grad);
         double gu = 0, gv = 0, gs0 = 0, gs1 = 0, gs2 = 0, gm = 0, gscale = 0, gd = 0;
@@ -783,7 +794,7 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
           const scalar_t* p = lp[k];
           const int wu = static_cast<int>(wrap_u), wv = static_cast<int>(wrap_v);
           // Pass 1: this level's value out = num / den.
-          const double den = ewa_sums(q, lv, p, C, wu, wv, border, num);
+          const double den = ewa_sums(q, lv, p, C, wu, wv, border, num, &kept);
           double dot = 0;  // sum_c grad_c * out_c, for d/dD
           for (int64_t c = 0; c < C; ++c) {
             out[c] = num[c] / den;
@@ -793,22 +804,23 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
           gd += r.dwt[j] * dot;
           // Pass 2: d out_c / d val = w / den; d out_c / d w = (val_c - out_c) / den.
           double gsx = 0, gsy = 0, gxx = 0, gxy = 0, gyy = 0;
-          ewa_texels(q, lv, wu, wv, [&](double ss, double tt, double r2, double w, int64_t at) {
-            if (w <= 0) return;
+          for (const EwaTexel& t : kept) {
+            const double ss = t.ss, tt = t.tt, r2 = t.r2, w = t.w;
+            const int64_t at = t.at;
             double gw = 0;
             for (int64_t c = 0; c < C; ++c) {
               const double val = at >= 0 ? static_cast<double>(p[c * lv.plane + at]) : border;
               gw += g[c] * (val - out[c]);
               if (need_levels && at >= 0) gp[k][c * lv.plane + at] += static_cast<scalar_t>(g[c] * w / den);
             }
-            // w = exp(-alpha r2) - exp(-alpha) where positive.
-            const double gr2 = gw / den * (-kAlpha) * std::exp(-kAlpha * r2) / q.det;
+            // w = exp(-alpha r2) - exp(-alpha) (positive here).
+            const double gr2 = gw / den * (-kAlpha) * (w + floor_w) / q.det;
             gsx += gr2 * (-2 * q.syy * ss + 2 * q.sxy * tt);
             gsy += gr2 * (2 * q.sxy * ss - 2 * q.sxx * tt);
             gxx += gr2 * (tt * tt - r2 * q.syy);
             gyy += gr2 * (ss * ss - r2 * q.sxx);
             gxy += gr2 * (-2 * ss * tt + 2 * r2 * q.sxy);
-          });
+          }
           gu += gsx * static_cast<double>(lv.w);
           gv += gsy * static_cast<double>(lv.h);
           // sxx = sigma0 s^2 kx^2 + 1, sxy = sigma1 s^2 kx ky, syy = sigma2 s^2 ky^2 + 1
