@@ -20,6 +20,7 @@ vertex list is already the exact content of the file and ``uv_faces`` equals
 from __future__ import annotations
 
 import struct
+import warnings
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -154,13 +155,16 @@ def _parse_obj(path: Path):
     """
     v, vt, vn = [], [], []
     fv, ft, fn = [], [], []
-    with open(path, "r", encoding="utf-8", errors="replace") as fh:
+    # utf-8-sig: a byte-order mark would otherwise hide the first line's tag.
+    with open(path, "r", encoding="utf-8-sig", errors="replace") as fh:
         for lineno, line in enumerate(fh, 1):
             parts = line.split()
             if not parts:
                 continue
             tag = parts[0]
             try:
+                if tag in ("v", "vn") and len(parts) < 4:
+                    raise ValueError(f"'{tag}' needs 3 coordinates")
                 if tag == "v":
                     v.append([float(x) for x in parts[1:4]])
                 elif tag == "vt":
@@ -354,7 +358,10 @@ def _read_png16(path: Path, header) -> np.ndarray:
         pos += 12 + length
     bpp = 2 * c
     stride = w * bpp
-    raw = np.frombuffer(zlib.decompress(b"".join(idat)), dtype=np.uint8)
+    try:
+        raw = np.frombuffer(zlib.decompress(b"".join(idat)), dtype=np.uint8)
+    except zlib.error as exc:
+        raise ValueError(f"{str(path)!r}: corrupt or truncated PNG data ({exc})") from None
     if raw.size < h * (stride + 1):
         raise ValueError(f"{str(path)!r}: truncated PNG data")
     rows = raw[: h * (stride + 1)].reshape(h, stride + 1)
@@ -406,6 +413,27 @@ def _write_png16(path: Path, array: np.ndarray) -> None:
                      + chunk(b"IEND", b""))
 
 
+# Pillow modes that imageio returns as they are: bilevel, grey(+alpha), RGB(A), 16/32-bit grey, float.
+_PLAIN_MODES = ("1", "L", "LA", "RGB", "RGBA", "I;16", "I;16B", "I;16L", "I", "F")
+
+
+def _read_mode(meta: dict) -> str | None:
+    """The Pillow mode to convert to on reading (None: as stored).
+
+    Palette, grey and RGB images with a tRNS transparency keep it as an
+    alpha channel (imageio drops it otherwise); CMYK, YCbCr, LAB and HSV
+    JPEGs / PNGs become RGB (as stored they would pass for RGBA or RGB).
+    """
+    mode, transparent = meta.get("mode"), "transparency" in meta
+    if mode in ("P", "PA"):
+        return "RGBA" if transparent or mode == "PA" else "RGB"
+    if transparent and mode in ("L", "RGB"):
+        return "LA" if mode == "L" else "RGBA"
+    if mode is not None and mode not in _PLAIN_MODES:
+        return "RGB"
+    return None
+
+
 def load_texture(path: PathLike, *, device=None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """Load a PNG / JPEG image as a texture in [0, 1].
 
@@ -433,7 +461,11 @@ def load_texture(path: PathLike, *, device=None, dtype: torch.dtype = torch.floa
         import imageio.v3 as iio
 
         try:
-            array = np.asarray(iio.imread(path))
+            mode = _read_mode(iio.immeta(path))
+            with warnings.catch_warnings():
+                # Pillow suggests RGBA for palette + transparency, which is what mode asks for.
+                warnings.filterwarnings("ignore", message="Palette images with Transparency")
+                array = np.asarray(iio.imread(path) if mode is None else iio.imread(path, mode=mode))
         except Exception as exc:
             raise ValueError(f"could not read image {str(path)!r}: {exc}") from exc
     if array.dtype == np.uint8:

@@ -88,10 +88,20 @@ def _check_tensor(x, name: str, k: int) -> torch.Tensor:
 
 
 def _as_param(x, name: str, k: int, like: torch.Tensor) -> torch.Tensor:
-    """A parameter given as a tensor or a plain sequence, on ``like``'s device."""
+    """A parameter given as a tensor or a plain sequence, on ``like``'s device, broadcastable with ``like``."""
     if not isinstance(x, torch.Tensor):
         x = torch.as_tensor(x, dtype=like.dtype, device=like.device)
-    return _check_tensor(x, name, k)
+    x = _check_tensor(x, name, k)
+    _broadcast(like.shape, x.shape, name, "points")
+    return x
+
+
+def _broadcast(shape: torch.Size, other: torch.Size, name: str, against: str) -> torch.Size:
+    """The broadcast of ``against``'s shape and ``name``'s shape ``other``; ValueError naming both if none."""
+    try:
+        return torch.broadcast_shapes(shape, other)
+    except RuntimeError:
+        raise ValueError(f"{name} must broadcast with {against} {tuple(shape)}, got {tuple(other)}") from None
 
 
 def _check_derivs(dx, dy, name: str, k: int, value: torch.Tensor) -> list[torch.Tensor]:
@@ -104,17 +114,14 @@ def _check_derivs(dx, dy, name: str, k: int, value: torch.Tensor) -> list[torch.
     out = []
     for d, n in ((dx, f"{name}_dx"), (dy, f"{name}_dy")):
         _check_tensor(d, n, k)
-        try:
-            shape = torch.broadcast_shapes(d.shape, value.shape)
-        except RuntimeError:
-            raise ValueError(f"{n} must broadcast with {name} {tuple(value.shape)}, "
-                             f"got {tuple(d.shape)}") from None
-        out.append(d.expand(shape))
+        out.append(d.expand(_broadcast(value.shape, d.shape, n, name)))
     return out
 
 
 def _result(uv: torch.Tensor, duv: list[torch.Tensor]) -> UVResult:
-    return (uv, duv[0], duv[1]) if duv else uv
+    # The derivatives get uv's full batch shape, which parameters (origin,
+    # center, ...) may have widened beyond the points'.
+    return (uv, duv[0].expand_as(uv), duv[1].expand_as(uv)) if duv else uv
 
 
 def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -379,7 +386,9 @@ def box_uv(points: torch.Tensor, normals: torch.Tensor, *,
         normals: [..., 3] normals (not necessarily unit); only their
             direction's dominant axis is used, so no gradient flows to them.
         center, size: the box ``center +- size / 2`` covers each face's
-            texture once; points outside it get uv outside [0, 1].
+            texture once; points outside it get uv outside [0, 1].  size is
+            one edge length for all three axes: a number or a [...] tensor
+            broadcast against the points' batch shape (not a per-axis [3]).
         layout: ``"shared"``: every face uses the whole [0, 1]^2 square;
             ``"atlas"``: a 3 x 2 atlas, columns of width 1/3 and rows of
             height 1/2, row 0 = (+X, -X, +Y), row 1 = (-Y, +Z, -Z).
@@ -400,6 +409,7 @@ def box_uv(points: torch.Tensor, normals: torch.Tensor, *,
         raise ValueError(f"layout must be 'shared' or 'atlas', got {layout!r}")
     if not isinstance(size, torch.Tensor):
         size = torch.as_tensor(size, dtype=points.dtype, device=points.device)
+    _broadcast(points.shape[:-1], size.shape, "size", "points' batch shape")
     dps = _check_derivs(points_dx, points_dy, "points", 3, points)
     try:
         shape = torch.broadcast_shapes(points.shape, normals.shape, center.shape)
@@ -547,7 +557,11 @@ def cube_to_direction(face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
                         f"{type(face).__name__ if not isinstance(face, torch.Tensor) else face.dtype}")
     if face.shape != uv.shape[:-1]:
         raise ValueError(f"face must have shape uv.shape[:-1] = {tuple(uv.shape[:-1])}, got {tuple(face.shape)}")
+    if face.dtype == torch.bool:
+        raise TypeError("face must be an integer tensor of shape [...] with values 0..5, got dtype torch.bool")
     face = face.long()
+    if face.numel() and not bool(((face >= 0) & (face <= 5)).all()):
+        raise ValueError(f"face must hold values 0..5, got values in [{int(face.min())}, {int(face.max())}]")
     sc_ax, sc_sg, tc_ax, tc_sg, ma_ax, ma_sg = _cube_tables(face)
     sc = (2.0 * uv[..., 0] - 1.0) * sc_sg.to(uv.dtype)
     tc = (2.0 * uv[..., 1] - 1.0) * tc_sg.to(uv.dtype)
@@ -596,6 +610,7 @@ def texture_matrix(uv: torch.Tensor, matrix: torch.Tensor, *,
                         f"{matrix.dtype if isinstance(matrix, torch.Tensor) else type(matrix).__name__}")
     if matrix.dim() < 2 or matrix.shape[-2:] != (3, 3):
         raise ValueError(f"matrix must have shape [..., 3, 3], got {tuple(matrix.shape)}")
+    _broadcast(uv.shape[:-1], matrix.shape[:-2], "matrix's batch shape", "uv's")
     duvs = _check_derivs(uv_dx, uv_dy, "uv", 2, uv)
     m = matrix
     u, v = uv[..., 0], uv[..., 1]
@@ -641,7 +656,12 @@ def uv_transform(shift: TensorLike = (0.0, 0.0), angle: Union[float, torch.Tenso
     """
     tensors = [t for t in (shift, angle, scale, center) if isinstance(t, torch.Tensor)]
     if dtype is None:
-        dtype = tensors[0].dtype if tensors else torch.get_default_dtype()
+        # An integer tensor argument (scale=torch.tensor(2)) must not make
+        # the result integer: that would truncate the shift and centre.
+        floats = [t.dtype for t in tensors if t.is_floating_point()]
+        dtype = floats[0] if floats else torch.get_default_dtype()
+    elif not dtype.is_floating_point:
+        raise TypeError(f"dtype must be a floating dtype, got {dtype}")
     if device is None and tensors:
         device = tensors[0].device
 

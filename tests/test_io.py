@@ -161,7 +161,50 @@ def test_image_errors(tmp_path):
         io.save_image(tmp_path / "x.png", torch.zeros(3, 2, 2, dtype=torch.uint8))
 
 
+def test_transparency_and_cmyk_images(tmp_path):
+    from PIL import Image
+
+    # A palette PNG with a tRNS chunk (pngquant / TinyPNG output): alpha kept.
+    rgba = np.zeros((2, 2, 4), np.uint8)
+    rgba[..., 0] = 200
+    rgba[..., 3] = [[0, 128], [255, 64]]
+    Image.fromarray(rgba, "RGBA").quantize(4, method=Image.Quantize.FASTOCTREE).save(tmp_path / "p.png")
+    t = io.load_texture(tmp_path / "p.png")
+    assert t.shape == (1, 4, 2, 2)
+    torch.testing.assert_close(t[0, 3] * 255, torch.tensor([[0.0, 128.0], [255.0, 64.0]]))
+    # Grey with a transparent grey value: grey + alpha.
+    Image.fromarray(np.array([[0, 100], [200, 255]], np.uint8), "L").save(tmp_path / "l.png", transparency=100)
+    t = io.load_texture(tmp_path / "l.png")
+    assert t.shape == (1, 2, 2, 2)
+    torch.testing.assert_close(t[0, 1], torch.tensor([[1.0, 0.0], [1.0, 1.0]]))
+    # A palette PNG without tRNS stays RGB.
+    Image.fromarray(np.full((3, 3, 3), 9, np.uint8)).convert("P").save(tmp_path / "n.png")
+    assert io.load_texture(tmp_path / "n.png").shape == (1, 3, 3, 3)
+    # A CMYK JPEG is RGB, not "RGBA".
+    Image.fromarray(np.full((4, 4, 3), (255, 0, 0), np.uint8)).convert("CMYK").save(tmp_path / "c.jpg", quality=100)
+    t = io.load_texture(tmp_path / "c.jpg")
+    assert t.shape == (1, 3, 4, 4)
+    torch.testing.assert_close(t[0, :, 0, 0], torch.tensor([1.0, 0.0, 0.0]), atol=2 / 255, rtol=0)
+
+
+def test_truncated_png16_names_the_file(tmp_path):
+    io.save_image(tmp_path / "x16.png", torch.rand(3, 8, 8), bits=16)
+    data = (tmp_path / "x16.png").read_bytes()
+    (tmp_path / "cut16.png").write_bytes(data[:len(data) // 2])
+    with pytest.raises(ValueError, match=r"cut16.png'?: corrupt or truncated PNG data"):
+        io.load_texture(tmp_path / "cut16.png")
+
+
 # ----------------------------------------------------------------- meshes
+
+
+def test_obj_with_byte_order_mark(tmp_path):
+    text = "\ufeffv 0 0 0\nv 1 0 0\nv 0 1 0\nv 5 5 5\nvt 0 0\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\n"
+    (tmp_path / "bom.obj").write_bytes(text.encode("utf-8"))
+    m = io.load_mesh(tmp_path / "bom.obj", dtype=torch.float64)
+    # The first 'v' line is read (the mark used to hide it: the face got vertices 2-4).
+    torch.testing.assert_close(m.positions[m.faces[0]],
+                               torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=torch.float64))
 
 
 def test_spot_counts(spot):
@@ -267,6 +310,10 @@ def test_mesh_errors(tmp_path):
     (tmp_path / "bad.obj").write_text("v 0 zero 0\n")
     with pytest.raises(ValueError, match="bad.obj.*line 1"):
         io.load_mesh(tmp_path / "bad.obj")
+    for tag in ("v", "vn"):
+        (tmp_path / "short.obj").write_text(f"v 0 0 0\nv 1 0 0\n{tag} 0 1\nvt 0 0\nf 1/1 2/1 1/1\n")
+        with pytest.raises(ValueError, match=f"short.obj.*line 3.*'{tag}' needs 3 coordinates"):
+            io.load_mesh(tmp_path / "short.obj")
     import trimesh
 
     trimesh.creation.box().export(tmp_path / "box.ply")  # no uv

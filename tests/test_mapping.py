@@ -382,3 +382,44 @@ def test_bad_inputs():
         M.uv_transform(shift=1.0)
     with pytest.raises(ValueError, match=r"face must have shape"):
         M.cube_to_direction(torch.zeros(3, dtype=torch.long), torch.zeros(4, 2))
+    # Parameters and batches that do not broadcast: ValueError naming the argument.
+    with pytest.raises(ValueError, match=r"origin must broadcast with points \(4, 3\), got \(5, 3\)"):
+        M.planar_uv(p, torch.zeros(5, 3), (1.0, 0, 0), (0, 1.0, 0))
+    with pytest.raises(ValueError, match=r"center must broadcast with points \(4, 3\), got \(5, 3\)"):
+        M.spherical_uv(p, torch.zeros(5, 3))
+    with pytest.raises(ValueError, match=r"axis must broadcast"):
+        M.cylindrical_uv(p, (0, 0, 0), torch.ones(5, 3))
+    with pytest.raises(ValueError, match=r"size must broadcast with points' batch shape \(4,\), got \(5,\)"):
+        M.box_uv(p, p, size=torch.ones(5))
+    with pytest.raises(ValueError, match=r"matrix's batch shape must broadcast with uv's \(4,\), got \(5,\)"):
+        M.texture_matrix(torch.zeros(4, 2), torch.eye(3).expand(5, 3, 3))
+    uv2 = torch.full((3, 2), 0.5)
+    for face in ([-1, 0, 1], [0, 6, 2]):
+        with pytest.raises(ValueError, match=r"face must hold values 0\.\.5, got values in"):
+            M.cube_to_direction(torch.tensor(face), uv2)
+    with pytest.raises(TypeError, match="face must be an integer tensor.*bool"):
+        M.cube_to_direction(torch.ones(3, dtype=torch.bool), uv2)
+    with pytest.raises(TypeError, match="dtype must be a floating dtype, got torch.int64"):
+        M.uv_transform(dtype=torch.int64)
+
+
+def test_integer_tensor_arguments_do_not_truncate_uv_transform():
+    # An int scale / angle used to make the matrix int64, dropping shift and centre.
+    ref = M.uv_transform(shift=(0.1, 0.0), scale=2.0)
+    torch.testing.assert_close(ref[:2, 2], torch.tensor([-0.4, -0.5]))
+    got = M.uv_transform(shift=(0.1, 0.0), scale=torch.tensor(2))
+    assert got.dtype == torch.get_default_dtype()
+    torch.testing.assert_close(got, ref)
+    got = M.uv_transform(shift=(0.25, 0.25), angle=torch.tensor(0), scale=torch.tensor([2.0, 2.0], dtype=torch.float64))
+    assert got.dtype == torch.float64
+    torch.testing.assert_close(got[:2, 2], torch.tensor([-0.25, -0.25], dtype=torch.float64))
+
+
+def test_derivatives_get_the_parameters_batch_shape():
+    g = torch.Generator().manual_seed(3)
+    p, dp = torch.randn(4, 3, generator=g), torch.randn(4, 3, generator=g)
+    origin = torch.randn(2, 1, 3, generator=g)
+    uv, dx, dy = M.planar_uv(p, origin, (1.0, 0, 0), (0, 1.0, 0), points_dx=dp, points_dy=-dp)
+    assert uv.shape == dx.shape == dy.shape == (2, 4, 2)
+    torch.testing.assert_close(dx[1], dp[:, :2])
+    torch.testing.assert_close(dy[0], -dp[:, :2])
