@@ -228,6 +228,11 @@ def transform(points: Tensor, matrix: Tensor) -> Tensor:
         raise ValueError(f"matrix must have shape [..., 4, 4], got {tuple(matrix.shape)}")
     if not (points.dtype.is_floating_point and matrix.dtype.is_floating_point):
         raise TypeError(f"points and matrix must be floating point, got {points.dtype} and {matrix.dtype}")
+    try:
+        torch.broadcast_shapes(points.shape[:-2], matrix.shape[:-2])
+    except RuntimeError:
+        raise ValueError(f"points' batch shape {tuple(points.shape[:-2])} and matrix's "
+                         f"{tuple(matrix.shape[:-2])} must broadcast") from None
     dtype = torch.promote_types(points.dtype, matrix.dtype)
     points, matrix = points.to(dtype), matrix.to(dtype)
     if points.shape[-1] == 3:

@@ -240,10 +240,23 @@ def lod(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Tensor | obj
         n = levels
     if n is None:
         n = level_count(H, W)
+    _check_lod_bias(lod_bias, uv_dx)
+    return level(log2_length(uv_dx, uv_dy, H, W), lod_bias, n)
+
+
+def _check_lod_bias(lod_bias: object, uv_dx: Tensor) -> None:
+    """A number, a 0-d tensor or [B, Ho, Wo] like ``uv_dx`` (either B may be 1); ValueError / TypeError otherwise."""
+    from ._checks import broadcast_batch, check_float, check_same
     if isinstance(lod_bias, Tensor):
         check_float("lod_bias", lod_bias, (0, 3), shape_doc="scalar or [B, Ho, Wo]")
         check_same("lod_bias", lod_bias, "uv_dx", uv_dx)
-    return level(log2_length(uv_dx, uv_dy, H, W), lod_bias, n)
+        if lod_bias.dim() == 3:
+            if lod_bias.shape[1:] != uv_dx.shape[1:3]:
+                raise ValueError(f"lod_bias: expected a scalar or [B, Ho, Wo] like uv_dx "
+                                 f"{tuple(uv_dx.shape[:3])}, got {tuple(lod_bias.shape)}")
+            broadcast_batch(["uv_dx", "lod_bias"], [uv_dx.shape[0], lod_bias.shape[0]])
+    elif isinstance(lod_bias, bool) or not isinstance(lod_bias, (int, float)):
+        raise TypeError(f"lod_bias: expected a number or a float tensor [B, Ho, Wo], got {type(lod_bias).__name__}")
 
 
 def levels_needed(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Tensor | object, *,
@@ -289,13 +302,7 @@ def levels_needed(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Te
     H, W, full = _size_and_levels(texture_size)
     if full is None:
         full = level_count(H, W)
-    if isinstance(lod_bias, Tensor):
-        check_float("lod_bias", lod_bias, (0, 3), shape_doc="scalar or [B, Ho, Wo]")
-        check_same("lod_bias", lod_bias, "uv_dx", uv_dx)
-        if lod_bias.dim() == 3 and lod_bias.shape[1:] != uv_dx.shape[1:3]:
-            raise ValueError(f"lod_bias: expected a scalar or [B, Ho, Wo] like uv_dx, got {tuple(lod_bias.shape)}")
-    elif isinstance(lod_bias, bool) or not isinstance(lod_bias, (int, float)):
-        raise TypeError(f"lod_bias: expected a number or a float tensor [B, Ho, Wo], got {type(lod_bias).__name__}")
+    _check_lod_bias(lod_bias, uv_dx)
     sizes = [uv_dx.shape[0], uv_dy.shape[0]] + ([lod_bias.shape[0]] if isinstance(lod_bias, Tensor) and
                                                 lod_bias.dim() == 3 else [])
     broadcast_batch(["uv_dx", "uv_dy", "lod_bias"][:len(sizes)], sizes)

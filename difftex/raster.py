@@ -58,9 +58,10 @@ class Fragments:
             triangle's corners (sum to 1); zero on background.
         depth: [B, H, W] NDC z of the visible surface (smaller is nearer);
             zero on background.
-        bary_dx: [B, H, W, 3] d(bary) / d(pixel column), analytic.
+        bary_dx: [B, H, W, 3] d(bary) / d(pixel column), analytic (2/W
+            times d(bary)/d(NDC x)).
         bary_dy: [B, H, W, 3] d(bary) / d(pixel row), analytic (rows grow
-            downwards, so this is -H/2 times d(bary)/d(NDC y)).
+            downwards, so this is -2/H times d(bary)/d(NDC y)).
 
     ``bary``, ``depth``, ``bary_dx`` and ``bary_dy`` are differentiable with
     respect to the clip-space positions given to :func:`rasterize`.
@@ -118,7 +119,7 @@ def _check_resolution(resolution: Sequence[int]) -> tuple[int, int]:
         raise TypeError(f"resolution must hold two ints, got {resolution!r}")
     try:
         hi, wi = int(h), int(w)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise TypeError(f"resolution must hold two ints, got {resolution!r}") from None
     if hi != h or wi != w:
         raise TypeError(f"resolution must hold two ints, got {resolution!r}")

@@ -74,7 +74,8 @@ def sample(
             taps). See ``difftex.filters`` for each.
         wrap: "repeat" | "clamp" | "mirror" | "border", one for both axes or a
             pair (wrap_u, wrap_v).
-        border_value: the constant that "border" reads outside the texture.
+        border_value: the constant that "border" reads outside the texture
+            (a finite number, the same for every channel).
         uv_dx, uv_dy: [B, Ho, Wo, 2] uv per pixel column / row (times
             (W, H) texels per pixel); required by the mip filters. B = 1
             broadcasts.
@@ -93,7 +94,7 @@ def sample(
         [B, C, Ho, Wo], same dtype and device as the inputs.
 
     Gradients flow to texture (through every mip level back to the base) and
-    uv (nearest, nearest-mip: texture only), and for the mip filters to
+    uv (nearest: texture only), and for the mip filters to
     uv_dx, uv_dy and lod_bias through the level blend and the tap placement
     (nearest-mip: none). The single-level backward is itself differentiable
     (double backward). A pixel with a NaN or infinite uv comes out NaN and
@@ -103,8 +104,9 @@ def sample(
 
     Raises ValueError naming the argument on bad shapes, batch mismatch,
     different devices, an unknown filter / wrap, missing derivatives for a
-    mip filter, ``max_aniso`` outside [1, 1024] or ``tolerance < 0``; TypeError on
-    non-float tensors or mixed dtypes.
+    mip filter, ``max_aniso`` outside [1, 1024], ``tolerance < 0`` or a
+    non-finite ``border_value``; TypeError on non-float tensors, mixed dtypes
+    or a ``border_value`` that is not a number.
     """
     pyramid = None
     if isinstance(texture, Mipmap):
@@ -119,6 +121,7 @@ def sample(
     if not isinstance(filter, str) or filter not in FILTERS:
         raise ValueError(f"filter: unknown filter {filter!r}; expected one of {FILTERS}")
     max_aniso = _check_number("max_aniso", max_aniso, 1, MAX_ANISO)
+    border_value = _check_number("border_value", border_value, -math.inf)
     tolerance = _check_number("tolerance", tolerance, 0)
     _, Ho, Wo, _ = uv.shape
     derivs = _check_derivatives(filter, uv, texture, uv_dx, uv_dy)
@@ -138,7 +141,7 @@ def sample(
         if pyramid is None:
             pyramid = texture
         return _sample_mip(pyramid, uv, derivs[0], derivs[1], bias, B, filter, max_aniso, tolerance,
-                           wrap_u, wrap_v, float(border_value))
+                           wrap_u, wrap_v, border_value)
     flat_uv = uv.expand(B, -1, -1, -1).reshape(B, -1, 2)
     out = separable_sample(texture, flat_uv, SEPARABLE[filter], wrap_u, wrap_v, border_value)
     return out.view(B, C, Ho, Wo)
@@ -197,11 +200,12 @@ def _taps(filter: str, dx: Tensor, dy: Tensor, bias: Union[float, Tensor], heigh
 
 def _check_number(name: str, value: object, minimum: float, maximum: float = math.inf) -> float:
     """A finite real in [minimum, maximum], as float; TypeError / ValueError naming ``name`` otherwise."""
-    want = f">= {minimum:g}" if maximum == math.inf else f"in [{minimum:g}, {maximum:g}]"
+    want = ("" if minimum == -math.inf and maximum == math.inf else f" >= {minimum:g}" if maximum == math.inf
+            else f" in [{minimum:g}, {maximum:g}]")
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name}: expected a number {want}, got {type(value).__name__}")
+        raise TypeError(f"{name}: expected a number{want}, got {type(value).__name__}")
     if not (math.isfinite(value) and minimum <= value <= maximum):
-        raise ValueError(f"{name}: expected a finite number {want}, got {value!r}")
+        raise ValueError(f"{name}: expected a finite number{want}, got {value!r}")
     return float(value)
 
 

@@ -104,6 +104,9 @@ class TexturedMesh(nn.Module):
             frags = self.rasterize(mvp, resolution)
         if uv is None:
             uv = self.uv
+        elif not isinstance(uv, torch.Tensor):
+            raise TypeError(f"uv: expected a float tensor {tuple(self.uv.shape)} like the mesh's uv, "
+                            f"got {type(uv).__name__}")
         elif uv.shape != self.uv.shape:
             raise ValueError(f"uv: expected shape {tuple(self.uv.shape)} like the mesh's uv, got {tuple(uv.shape)}")
         uv, uv_dx, uv_dy = interpolate(uv, self.faces, frags, derivatives=True, attr_faces=self.uv_faces)

@@ -120,5 +120,7 @@ def test_bad_input_errors_name_the_argument():
         camera.transform(torch.rand(5, 2), torch.eye(4))
     with pytest.raises(ValueError, match="matrix"):
         camera.transform(torch.rand(5, 3), torch.eye(3))
+    with pytest.raises(ValueError, match=r"points' batch shape \(2,\) and matrix's \(3,\) must broadcast"):
+        camera.transform(torch.rand(2, 5, 3), torch.rand(3, 4, 4))
     with pytest.raises(TypeError, match="dtype"):
         camera.perspective(1.0, dtype=torch.int64)

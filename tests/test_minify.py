@@ -293,6 +293,17 @@ def test_grazing_plane_derivatives_are_exact():
     assert torch.isnan(uv_sky[:, 0]).all() and (dx_sky[:, 0] == 0).all() and torch.isfinite(uv_sky[:, -1]).all()
 
 
+def test_psnr_scores_non_finite_output_as_nan():
+    ref = torch.rand(1, 3, 8, 8, generator=_gen(5))
+    x = ref + 0.01
+    assert abs(psnr(x, ref) - 40.0) < 1e-4
+    ref_masked = ref.clone()
+    ref_masked[..., :2, :] = float("nan")  # the reference's non-finite pixels are left out
+    assert abs(psnr(x, ref_masked) - 40.0) < 1e-4
+    x[..., 4:, :] = float("nan")  # a filter's NaN output must not score a perfect inf
+    assert math.isnan(psnr(x, ref))
+
+
 def test_grazing_plane_psnr_ordering(capsys):
     """The issue's scene: 256x256, 1024^2 checker + noise, repeat, 16x16 supersampled bilinear reference."""
     torch.manual_seed(0)
@@ -394,6 +405,43 @@ def test_degenerate_derivatives_give_finite_values_and_zero_gradients(filter):
     # 1024:1 ellipse), a bounded amount of work with finite results.
     out = difftex.sample(tex, uv, filter=filter, uv_dx=dx, uv_dy=dy, max_aniso=1024)
     assert torch.isfinite(out).all()
+
+
+@pytest.mark.parametrize("impl", ["fast", "reference"])
+@pytest.mark.parametrize("filter", ["trilinear", "anisotropic", "auto", "ewa"])
+def test_nan_uv_sends_no_nan_to_the_footprint(filter, impl, monkeypatch):
+    # A masked-out NaN-uv pixel: its derivative and bias gradients are 0 on
+    # both paths (the torch path's mip_blend once gave 0 * NaN = NaN there).
+    from difftex.filters import basic
+    monkeypatch.setattr(basic, "IMPL", impl)
+    tex = torch.rand(1, 3, 8, 8, generator=_gen(21), dtype=f64)
+    uv = torch.tensor([[[[0.3, 0.4], [float("nan"), 0.5]]]], dtype=f64)
+    dx = torch.tensor([0.3, 0.05], dtype=f64).expand(1, 1, 2, 2).clone().requires_grad_(True)
+    dy = torch.tensor([0.02, 0.2], dtype=f64).expand(1, 1, 2, 2).clone().requires_grad_(True)
+    bias = torch.zeros(1, 1, 2, dtype=f64, requires_grad=True)
+    out = difftex.sample(tex, uv, filter=filter, uv_dx=dx, uv_dy=dy, lod_bias=bias)
+    assert torch.isnan(out[0, :, 0, 1]).all() and torch.isfinite(out[0, :, 0, 0]).all()
+    grads = torch.autograd.grad(torch.where(torch.isnan(out), 0.0, out).sum(), (dx, dy, bias))
+    for g in grads:
+        assert torch.isfinite(g).all()
+        assert (g[0, 0, 1] == 0).all()
+    assert grads[0][0, 0, 0].abs().sum() > 0  # the good pixel still has its gradient
+
+
+@pytest.mark.parametrize("filter", MIP + ("auto",))
+def test_huge_finite_uv_clamps_and_borders(filter):
+    # Past 2^52 texels a coordinate has no fraction left: clamp reads the
+    # edge texel, border the constant (the kernel once took x - floor as the
+    # fraction there and gave 0 or NaN).
+    tex = torch.full((1, 1, 4, 4), 0.5, requires_grad=True)
+    uv = torch.tensor([[[[3e15, 0.5], [1e20, 1e20], [0.3, 0.6], [-1e20, 0.5]]]])
+    dx = torch.tensor([0.25, 0.0]).expand(1, 1, 4, 2)
+    dy = torch.tensor([0.0, 0.25]).expand(1, 1, 4, 2)
+    for wrap, want in (("clamp", [0.5, 0.5, 0.5, 0.5]), ("border", [0.0, 0.0, 0.5, 0.0])):
+        out = difftex.sample(tex, uv, filter=filter, wrap=wrap, uv_dx=dx, uv_dy=dy)
+        torch.testing.assert_close(out.flatten(), torch.tensor(want), rtol=0, atol=1e-6)
+        (g,) = torch.autograd.grad(out.sum(), tex)
+        assert torch.isfinite(g).all(), wrap
 
 
 @pytest.mark.parametrize("filter", MIP + ("auto",))
@@ -577,3 +625,11 @@ def test_bad_input():
         lod(d, torch.zeros(1, 4, 4, 2), (8, 8))
     with pytest.raises(ValueError, match="levels"):
         lod(d, d, (8, 8), levels=0)
+    with pytest.raises(ValueError, match=r"lod_bias: expected a scalar or \[B, Ho, Wo\] like uv_dx \(1, 4, 5\), got \(1, 5, 4\)"):
+        lod(d, d, (8, 8), lod_bias=torch.zeros(1, 5, 4))
+    with pytest.raises(ValueError, match=r"lod_bias: expected a scalar or \[B, Ho, Wo\] like uv_dx \(1, 4, 5\), got \(1, 1, 5\)"):
+        lod(d, d, (8, 8), lod_bias=torch.zeros(1, 1, 5))
+    with pytest.raises(ValueError, match="batch sizes"):
+        lod(d.expand(2, -1, -1, -1), d.expand(2, -1, -1, -1), (8, 8), lod_bias=torch.zeros(3, 4, 5))
+    with pytest.raises(TypeError, match="lod_bias: expected a number"):
+        lod(d, d, (8, 8), lod_bias="1")

@@ -431,6 +431,8 @@ def test_bad_input_errors_name_the_argument():
         rasterize(pos, faces, 16)
     with pytest.raises(TypeError, match="resolution"):
         rasterize(pos, faces, (4.5, 4))
+    with pytest.raises(TypeError, match=r"resolution must hold two ints, got \(inf, 4\)"):
+        rasterize(pos, faces, (float("inf"), 4))
 
 
 def test_public_api():

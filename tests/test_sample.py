@@ -242,6 +242,25 @@ def test_empty_image(filt):
         assert torch.equal(tex.grad, torch.zeros_like(tex))
 
 
+@pytest.mark.parametrize("points", [5, 33])
+@pytest.mark.parametrize("wrap", ["border", "clamp", "mirror", "repeat"])
+def test_nearest_ties_round_like_grid_sample(wrap, points):
+    # u = k / 32 on 16 texels: every other point is an exact tie between two
+    # texels, rounded half to even as grid_sample does. 5 points take the
+    # gather path, 33 (more points than the 32 texels) the padded-texture one.
+    tex = torch.arange(32.0).view(1, 1, 2, 16)
+    u = torch.arange(33.0)[torch.linspace(0, 32, points).long()] / 32
+    uv = torch.stack((u, torch.full_like(u, 0.25)), -1).view(1, 1, points, 2)
+    out = difftex.sample(tex, uv, filter="nearest", wrap=wrap)
+    if wrap == "repeat":  # u = 1 is u = 0; inside [0, 1) no tap leaves the texture
+        uv_ref, pad = uv.clone(), "border"
+        uv_ref[..., 0] = torch.where(u == 1, 0.0, u)
+    else:
+        uv_ref, pad = uv, GS_PAD[wrap]
+    ref = F.grid_sample(tex, 2 * uv_ref - 1, mode="nearest", padding_mode=pad, align_corners=False)
+    torch.testing.assert_close(out, ref, rtol=0, atol=0)
+
+
 def test_huge_uv_is_finite():
     tex, uv = _rand_case(11, (8, 8), B=1, C=1, dtype=torch.float32)
     uv = uv * 1e30
@@ -264,6 +283,10 @@ def test_huge_uv_is_finite():
     (dict(wrap=("repeat",)), ValueError, r"wrap: expected one mode or a pair"),
     (dict(wrap=3), TypeError, r"wrap: expected a str"),
     (dict(texture=torch.rand(1, 3, 0, 4)), ValueError, r"texture: expected C, H, W >= 1"),
+    (dict(border_value=torch.ones(3)), TypeError, r"border_value: expected a number, got Tensor"),
+    (dict(border_value="0.5"), TypeError, r"border_value: expected a number, got str"),
+    (dict(border_value=True), TypeError, r"border_value: expected a number, got bool"),
+    (dict(border_value=float("nan")), ValueError, r"border_value: expected a finite number, got nan"),
 ])
 def test_bad_input(kwargs, exc, match):
     args = dict(texture=torch.rand(1, 3, 4, 4), uv=torch.rand(1, 4, 4, 2))

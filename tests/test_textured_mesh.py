@@ -98,3 +98,5 @@ def test_bad_input(spot):
         m(torch.rand(2, 3, 3), (8, 8))
     with pytest.raises(ValueError, match=r"uv: expected shape \(3225, 2\)"):
         m(_mvp(1), (8, 8), uv=torch.rand(10, 2))
+    with pytest.raises(TypeError, match=r"uv: expected a float tensor \(3225, 2\).*got list"):
+        m(_mvp(1), (8, 8), uv=[[0.5, 0.5]])

@@ -101,7 +101,7 @@ DT_INLINE Axis place(Folded fu, int64_t n, int mode) {
   a.slope = fu.slope;
   a.in0 = a.in1 = true;
   double x = fu.u * static_cast<double>(n) - 0.5, x0 = floor_capped(x);
-  a.f = x - x0;
+  a.f = std::abs(x) < kTwo52 ? x - x0 : 0.0;  // capped x0: no fraction left (clamp / border)
   int64_t i = static_cast<int64_t>(x0), j = i + 1;
   switch (mode) {
     case REPEAT:  // i in [-1, n - 1], j in [0, n]

@@ -217,6 +217,13 @@ class FastSample:
             folded = _fold(uv, wrap_u)
         else:
             folded = torch.stack((_fold(uv[..., 0], wrap_u), _fold(uv[..., 1], wrap_v)), -1)
+        if kind == "nearest":
+            # To the centre of the texel that x = u * n - 0.5 rounds to (half
+            # to even, as the reference and grid_sample): grid_sample's own
+            # rounding would see a tie through the padded texture's rescaled
+            # coordinates, which are not exact, and could pick either side.
+            size = uv.new_tensor([W, H])
+            folded = (torch.round(folded * size - 0.5) + 0.5) / size
         self.uv, self.folded = uv, folded
         self.edge = None
         if shared and (wrap_u, wrap_v) != ("clamp", "clamp") and H * W > B * M:

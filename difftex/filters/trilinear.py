@@ -266,7 +266,14 @@ def trilinear_points(levels: Levels, uv: Tensor, D: Tensor, wrap_u: str, wrap_v:
     if basic.IMPL == "fast" and native.usable(uv):
         lv = build_levels(levels.texture, len(levels)) if isinstance(levels, TexturePyramid) else list(levels)
         return _NativeTaps.apply(uv, D, axis, count, (wrap_u, wrap_v, float(border), nearest_mip), *lv)
-    return _torch_taps(levels, uv, D, wrap_u, wrap_v, border, nearest_mip, axis, count)
+    # A non-finite uv reads a safe point and gets NaN put back, as the kernel
+    # and ewa_points do: its NaN value would otherwise meet a zero upstream
+    # gradient in mip_blend's d/dD (0 * NaN) and send NaN to uv_dx / uv_dy /
+    # lod_bias even where the loss masks the pixel out.
+    ok = torch.isfinite(uv).all(-1)
+    out = _torch_taps(levels, torch.where(ok.unsqueeze(-1), uv, 0.0), D, wrap_u, wrap_v, border, nearest_mip,
+                      axis, count)
+    return torch.where(ok, out, float("nan"))
 
 
 def _torch_taps(levels: Levels, uv: Tensor, D: Tensor, wrap_u: str, wrap_v: str, border: float, nearest_mip: bool,
