@@ -302,6 +302,8 @@ def test_psnr_scores_non_finite_output_as_nan():
     assert abs(psnr(x, ref_masked) - 40.0) < 1e-4
     x[..., 4:, :] = float("nan")  # a filter's NaN output must not score a perfect inf
     assert math.isnan(psnr(x, ref))
+    x[..., 4:, :] = float("inf")
+    assert math.isnan(psnr(x, ref))
 
 
 def test_grazing_plane_psnr_ordering(capsys):
