@@ -1,19 +1,27 @@
 """difftex: differentiable texture mapping for PyTorch.
 
 Conventions (uv origin, tensor layouts, clip space, pixel centres) are in
-DESIGN.md; this module only re-exports the public API.
+DESIGN.md; this module only re-exports the public API. The subpackages:
+``geometry`` (camera, mesh, rasterize, interpolate), ``texture`` (sample,
+level of detail, mipmaps, filters, the native kernel), ``mapping`` (uv
+generators, texture matrix), ``envmap`` (environment-map directions),
+``io`` (images, meshes), ``nn`` (modules), ``metrics``, ``backend``.
 """
 
-from .sample import sample
-from .wrap import WRAP_MODES
-from . import io, mapping
-from .io import Mesh, load_mesh, load_texture, save_image
-from .mapping import (planar_uv, cylindrical_uv, spherical_uv, box_uv, normal_uv,
-                      direction_to_equirect_uv, direction_to_cube, texture_matrix, uv_transform)
-from .raster import Fragments, rasterize
-from .interpolate import interpolate
-from . import camera
-from .mipmap import Mipmap, mipmap
-from .lod import lod
-from .textured_mesh import TexturedMesh
-from .lod import levels_needed
+from . import envmap, io, mapping, metrics
+from .backend import backend
+from .envmap import cube_to_direction, direction_to_cube, direction_to_equirect_uv, equirect_uv_to_direction
+from .geometry import Fragments, Mesh, camera, interpolate, rasterize
+from .io import load_mesh, load_texture, save_image
+from .mapping import (box_uv, cylindrical_uv, normal_uv, planar_uv, spherical_uv, texture_matrix,
+                      uv_transform)
+from .nn import TexturedMesh
+from .texture import WRAP_MODES, Mipmap, levels_needed, lod, mipmap, sample
+
+__all__ = [
+    "backend", "camera", "envmap", "io", "mapping", "metrics",
+    "Fragments", "Mesh", "Mipmap", "TexturedMesh", "WRAP_MODES",
+    "box_uv", "cube_to_direction", "cylindrical_uv", "direction_to_cube", "direction_to_equirect_uv",
+    "equirect_uv_to_direction", "interpolate", "levels_needed", "load_mesh", "load_texture", "lod", "mipmap",
+    "normal_uv", "planar_uv", "rasterize", "sample", "save_image", "spherical_uv", "texture_matrix", "uv_transform",
+]

@@ -31,10 +31,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "experiments"))
 import difftex  # noqa: E402
-from difftex.filters.anisotropic import tap_count  # noqa: E402
-from difftex.filters.auto import auto_tap_count  # noqa: E402
-from difftex.lod import ellipse, footprint  # noqa: E402
-from difftex.sample import DEFAULT_TOLERANCE  # noqa: E402
+from difftex.texture.filters.anisotropic import tap_count  # noqa: E402
+from difftex.texture.filters.auto import auto_tap_count  # noqa: E402
+from difftex.texture.lod import ellipse, footprint  # noqa: E402
+from difftex.texture.options import DEFAULT_TOLERANCE  # noqa: E402
 from speed_vs_accuracy import build_scenes, masked_psnr  # noqa: E402
 
 SWEEP = (0.0, DEFAULT_TOLERANCE, 0.25, 0.5, 1.0)

@@ -28,7 +28,8 @@ import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import difftex  # noqa: E402
-from difftex.scenes import checker_noise_texture, grazing_plane, psnr  # noqa: E402
+from difftex.metrics import psnr  # noqa: E402
+from difftex.testing.scenes import checker_noise_texture, grazing_plane  # noqa: E402
 
 
 def _timed_pair(fn, base, repeats: int) -> tuple[float, float, float]:
@@ -65,12 +66,8 @@ def _backward(fn, clear) -> None:
 def _torch_path(fn):
     """``fn`` run with difftex's native CPU kernel switched off (as ``DIFFTEX_NATIVE=0`` does)."""
     def run():
-        real = difftex.native.load
-        difftex.native.load = lambda: None
-        try:
+        with difftex.backend("grid_sample"):
             return fn()
-        finally:
-            difftex.native.load = real
     return run
 
 
@@ -127,7 +124,7 @@ def main() -> None:
         label = f"difftex {name}" + (f", max_aniso {kw['max_aniso']}" if kw else "")
         rows.append((label, lambda name=name, kw=kw: difftex.sample(tex, uv, filter=name, uv_dx=dx, uv_dy=dy, **kw)))
 
-    # The same filters with the native CPU kernel off (difftex.native): the torch path.
+    # The same filters with the native CPU kernel off (difftex.backend): the torch path.
     for name, kw in (("trilinear", {}), ("anisotropic", {"max_aniso": 2})):
         label = f"difftex {name}" + (f", max_aniso {kw['max_aniso']}" if kw else "") + ", torch path (no native kernel)"
         rows.append((label, _torch_path(lambda name=name, kw=kw: difftex.sample(tex, uv, filter=name, uv_dx=dx,

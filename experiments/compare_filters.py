@@ -19,7 +19,8 @@ import torch
 import torch.nn.functional as F
 
 import difftex
-from difftex.scenes import grazing_plane, psnr
+from difftex.metrics import psnr
+from difftex.testing.scenes import grazing_plane
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -27,7 +28,7 @@ ROOT = Path(__file__).resolve().parent.parent
 def methods() -> list[tuple[str, dict]]:
     out = [("nearest", {}), ("bilinear", {}), ("bicubic", {}), ("trilinear", {}),
            ("anisotropic", {"max_aniso": 4}), ("anisotropic", {"max_aniso": 16}), ("ewa", {"max_aniso": 16})]
-    if "auto" in importlib.import_module("difftex.sample").FILTERS:
+    if "auto" in importlib.import_module("difftex.texture.options").FILTERS:
         out.append(("auto", {}))
     return out
 

@@ -79,9 +79,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 import difftex  # noqa: E402
 from difftex import camera  # noqa: E402
-from difftex.scenes import checker_noise_texture, grazing_plane, psnr as _psnr  # noqa: E402
+from difftex.metrics import psnr as _psnr  # noqa: E402
+from difftex.testing.scenes import checker_noise_texture, grazing_plane  # noqa: E402
 
-_sample_mod = importlib.import_module("difftex.sample")
+_sample_mod = importlib.import_module("difftex.texture.options")
 
 try:  # optional perceptual metric; never a dependency of the package
     import flip_evaluator as _flip

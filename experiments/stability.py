@@ -51,10 +51,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "experiments"))
 import difftex  # noqa: E402
-from difftex.scenes import checker_noise_texture, grazing_plane, psnr  # noqa: E402
+from difftex.metrics import psnr  # noqa: E402
+from difftex.testing.scenes import checker_noise_texture, grazing_plane  # noqa: E402
 import speed_vs_accuracy as sva  # noqa: E402
 
-_sample_mod = importlib.import_module("difftex.sample")
+_sample_mod = importlib.import_module("difftex.texture.options")
 FILTERS: tuple[str, ...] = tuple(_sample_mod.FILTERS)
 MIP_FILTERS: tuple[str, ...] = tuple(_sample_mod.MIP_FILTERS)
 

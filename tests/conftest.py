@@ -1,6 +1,38 @@
-"""Shared fixtures."""
+"""Shared fixtures: device, dtype and backend, and the one-thread switch of many-small-op modules."""
 import pytest
 import torch
+
+import difftex
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+DTYPES = [torch.float32, torch.float64]
+# The implementations difftex.backend chooses among (the "auto" default is "native" where the kernel serves).
+BACKENDS = ("native", "grid_sample", "reference")
+
+
+def use_backend(name: str):
+    """``difftex.backend(name)`` as a context manager; skips the test where the native kernel is not built."""
+    try:
+        return difftex.backend(name)
+    except RuntimeError as exc:
+        pytest.skip(str(exc))
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> str:
+    return request.param
+
+
+@pytest.fixture(params=DTYPES, ids=["float32", "float64"])
+def dtype(request) -> torch.dtype:
+    return request.param
+
+
+@pytest.fixture(params=BACKENDS)
+def backend(request) -> str:
+    """Runs the test under each backend (``difftex.backend``), restoring the previous choice afterwards."""
+    with use_backend(request.param):
+        yield request.param
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,99 @@
+"""Which implementation runs a texture read: the one place that decides.
+
+difftex has three implementations of its reads, all giving the same values
+and gradients to rounding (the tests hold them equal):
+
+* ``"native"``: the C++ CPU kernel (``difftex.texture.native``) for the mip
+  filters' taps and footprint front end, EWA and the pyramid's box step;
+  float32 / float64 tensors on the CPU, where the kernel built.
+* ``"grid_sample"``: torch ops, with the single-level reads on
+  ``torch.nn.functional.grid_sample`` and hand-written first-order
+  backwards (``texture/filters/grid.py``); every device and dtype.
+* ``"gather"``: torch ops, with the single-level reads as the gather /
+  scatter reference (``texture/filters/gather.py``), differentiable to any
+  order; the reference the others are tested against.
+
+A program picks with :func:`backend` (a context manager, or a plain call
+that sets the choice until changed):
+
+* ``"auto"`` (default): native where it serves, else grid_sample;
+  ``DIFFTEX_NATIVE=0`` in the environment keeps the kernel off (never built);
+* ``"native"``: as auto, and raises RuntimeError at the switch if the kernel
+  cannot be built;
+* ``"grid_sample"``: the torch path, kernel off;
+* ``"reference"``: the gather reference for every read, kernel off.
+
+Whatever the choice, double backward (``create_graph=True``) runs the
+differentiable torch ops, and CUDA / MPS / XPU tensors never reach the
+CPU kernel.
+"""
+from __future__ import annotations
+
+import contextlib
+import threading
+import torch
+from torch import Tensor
+
+CHOICES = ("auto", "native", "grid_sample", "reference")
+
+_state = threading.local()
+
+
+def current() -> str:
+    """The choice in force in this thread: one of ``CHOICES``."""
+    return getattr(_state, "choice", "auto")
+
+
+class _Switch(contextlib.AbstractContextManager):
+    """The value of :func:`backend`: already in force; as a context manager it restores the previous choice."""
+
+    def __init__(self, previous: str):
+        self.previous = previous
+
+    def __exit__(self, *exc) -> None:
+        _state.choice = self.previous
+
+
+def backend(choice: str) -> _Switch:
+    """Choose the implementation of difftex's texture reads (see the module notes).
+
+    Args:
+        choice: "auto" | "native" | "grid_sample" | "reference".
+
+    Returns:
+        A context manager; ``with difftex.backend("reference"): ...`` runs the
+        block with that choice and restores the previous one (per thread).
+        Called on its own, the choice stays until the next call.
+
+    Raises ValueError naming ``choice`` for an unknown name, RuntimeError for
+    "native" where the kernel cannot be built (or ``DIFFTEX_NATIVE=0``).
+    """
+    if not isinstance(choice, str) or choice not in CHOICES:
+        raise ValueError(f"backend: unknown choice {choice!r}; expected one of {CHOICES}")
+    if choice == "native":
+        from .texture import native
+        if native.load() is None:
+            raise RuntimeError("backend: 'native' asked for, but the native CPU kernel is not available "
+                               "(DIFFTEX_NATIVE=0, or its build failed: see the warning)")
+    previous = current()
+    _state.choice = choice
+    return _Switch(previous)
+
+
+def native_kernel(like: Tensor):
+    """The native kernel module where it serves tensors like ``like``, else None.
+
+    It serves float32 / float64 CPU tensors under the choices "auto" and
+    "native", once built (the first call builds it).
+    """
+    choice = current()
+    if choice not in ("auto", "native") or like.device.type != "cpu" or like.dtype not in (torch.float32,
+                                                                                          torch.float64):
+        return None
+    from .texture import native
+    return native.load()
+
+
+def single_level() -> str:
+    """The implementation of the single-level (nearest / bilinear / bicubic) reads: "grid_sample" or "gather"."""
+    return "gather" if current() == "reference" else "grid_sample"

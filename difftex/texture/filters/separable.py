@@ -1,0 +1,60 @@
+"""The single-level read that every filter calls: one autograd node over the two implementations.
+
+``difftex.backend`` picks the implementation: the grid_sample path
+(``grid.py``: forward and first-order backward on grid_sample) or the
+gather reference (``gather.py``). Double backward always runs the
+reference backward, which is itself differentiable.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ...backend import single_level
+from .gather import separable_backward, separable_forward
+from .grid import FastSample, fast_forward
+
+
+class SeparableSample(torch.autograd.Function):
+    """Autograd wrapper: texture [Bt,C,H,W], uv [B,M,2] -> [B,C,M], Bt = B or 1."""
+
+    @staticmethod
+    def forward(ctx, texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float) -> Tensor:
+        ctx.save_for_backward(texture, uv)
+        ctx.args = (kind, wrap_u, wrap_v, border)
+        ctx.fast = None
+        if single_level() == "gather":
+            return separable_forward(texture, uv, kind, wrap_u, wrap_v, border)
+        # The fast path keeps what its hand-written backward needs (the
+        # padded texture, the grid); no graph.
+        ctx.fast = FastSample(texture, uv, kind, wrap_u, wrap_v, border, tex_grad=ctx.needs_input_grad[0])
+        return ctx.fast.out
+
+    @staticmethod
+    def backward(ctx, grad_out: Tensor):
+        texture, uv = ctx.saved_tensors
+        kind, wrap_u, wrap_v, border = ctx.args
+        need_tex, need_uv = ctx.needs_input_grad[:2]
+        if ctx.fast is not None and not torch.is_grad_enabled():
+            grad_tex, grad_uv = ctx.fast.backward(grad_out, need_tex, need_uv)
+        else:  # double backward (create_graph=True) or the reference path
+            grad_tex, grad_uv = separable_backward(texture, uv, grad_out, kind, wrap_u, wrap_v, border,
+                                                   need_tex, need_uv)
+        if need_uv and grad_uv is None:  # nearest: piecewise constant in uv
+            grad_uv = torch.zeros_like(uv)
+        return grad_tex, grad_uv, None, None, None, None
+
+
+def separable_sample(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float = 0.0) -> Tensor:
+    """Sample one level in the flat layout: texture [Bt,C,H,W], uv [B,M,2] -> [B,C,M].
+
+    Bt is B, or 1 for one texture shared by the B rows of points.
+
+    No input checks: callers (``difftex.sample`` and the mip filters) have
+    validated shapes, dtypes and modes already.
+    """
+    if single_level() == "grid_sample" and not (torch.is_grad_enabled() and
+                                                         (texture.requires_grad or uv.requires_grad)):
+        with torch.no_grad():
+            return fast_forward(texture, uv, kind, wrap_u, wrap_v, float(border))
+    return SeparableSample.apply(texture, uv, kind, wrap_u, wrap_v, float(border))

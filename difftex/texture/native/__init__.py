@@ -1,0 +1,91 @@
+"""The native CPU kernel of the mip filters (``csrc/mip_read.cpp``): built on first use, optional.
+
+The trilinear / nearest-mip taps of a pyramid, one a point or N along the
+footprint's major axis (the trilinear, nearest-mip, anisotropic and auto
+filters), are one pass over the points in C++ on the CPU: no tap list, no
+sorting of points by level, no per-level passes, and a backward that
+touches only the texels read. EWA is one pass too, forward and backward.
+The same module holds two smaller passes: the footprint front end of the
+tap filters (level, and the anisotropic / auto tap count and axis, per
+point) where no derivative needs a gradient, and the 2 x 2 box step of the
+pyramid build. The torch path (``mip_blend`` over grid_sample,
+``filters/trilinear.py``; ``filters/ewa.py``; ``lod.py`` and the tap
+counts; ``mipmap._box2``) stays the reference the tests compare it with,
+and runs wherever this kernel does not: on CUDA, for double backward, with
+``DIFFTEX_NATIVE=0`` in the environment, or where the build fails (no C++
+compiler or ninja), which is reported once as a warning.
+
+The first use compiles the kernel with ``torch.utils.cpp_extension.load``
+(about 30-60 s; cached by torch in ``TORCH_EXTENSIONS_DIR``, by default
+``~/.cache/torch_extensions``, and reused while the source is unchanged).
+"""
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+from pathlib import Path
+from types import ModuleType
+from typing import Callable, Optional, Sequence
+
+import torch
+from torch import Tensor
+
+_SOURCE = Path(__file__).resolve().parent / "csrc" / "mip_read.cpp"
+_NAME = "difftex_mip_read"
+_module: ModuleType | None = None
+_tried = False
+
+
+def enabled() -> bool:
+    """Whether the native kernel is wanted (``DIFFTEX_NATIVE`` is not ``0``)."""
+    return os.environ.get("DIFFTEX_NATIVE", "1") != "0"
+
+
+def load() -> ModuleType | None:
+    """The compiled kernel module, building it on the first call; None where disabled or the build failed."""
+    global _module, _tried
+    if not enabled():
+        return None
+    if _tried:
+        return _module
+    _tried = True
+    try:
+        from torch.utils import cpp_extension
+        try:
+            built = any(Path(cpp_extension._get_build_directory(_NAME, False)).glob(f"{_NAME}*.so"))
+        except Exception:  # a private helper: if it moves, just say so every time
+            built = False
+        if not built:
+            print("difftex: building the native CPU kernel (first use only, about a minute; "
+                  "DIFFTEX_NATIVE=0 skips it)...", file=sys.stderr, flush=True)
+        flags = ["/O2"] if os.name == "nt" else ["-O3"]  # MSVC spells it differently
+        # at::parallel_for runs serially unless the extension itself is built with OpenMP (as torch is
+        # on Linux); elsewhere the kernel stays single-threaded rather than depend on a libomp install.
+        omp = ["-fopenmp"] if sys.platform.startswith("linux") else []
+        _module = cpp_extension.load(name=_NAME, sources=[str(_SOURCE)], extra_cflags=flags + omp,
+                                     extra_ldflags=omp, verbose=False)
+    except Exception as exc:  # no compiler, no ninja, a failed build: the torch path serves
+        warnings.warn(f"difftex: native CPU kernel unavailable, using the torch path ({type(exc).__name__}: "
+                      f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else exc})", RuntimeWarning,
+                      stacklevel=2)
+        _module = None
+    return _module
+
+
+def double_backward(recompute: Callable[[], Tensor], saved: Sequence[Optional[Tensor]], need: Sequence[bool],
+                    grad: Tensor) -> tuple:
+    """A kernel node's backward under ``create_graph=True``: the gradients of the differentiable torch path.
+
+    ``recompute()`` evaluates the node's output from ``saved`` (its inputs, in
+    order; None for non-tensor ones) with torch ops; returns one gradient per
+    input, None where ``need`` is False, each itself differentiable.
+    """
+    inputs = [(i, t) for i, t in enumerate(saved) if need[i] and t is not None]
+    with torch.enable_grad():
+        out = recompute()
+    got = torch.autograd.grad(out, [t for _, t in inputs], grad, create_graph=True, allow_unused=True)
+    full: list[Optional[Tensor]] = [None] * len(saved)
+    for (i, _), g in zip(inputs, got):
+        full[i] = g
+    return tuple(full)

@@ -1,0 +1,218 @@
+"""``sample()``: one entry point for every texture filter and wrap mode."""
+from __future__ import annotations
+
+import math
+import numbers
+from typing import Optional, Union
+
+import torch
+from torch import Tensor
+
+from .._checks import broadcast_batch, check_float, check_same, describe
+from .filters.ewa import ewa_points
+from .filters.separable import separable_sample
+from .filters.trilinear import Levels, TexturePyramid, trilinear_points
+from .lod import ellipse, footprint
+from .options import DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_filter, check_number
+from .pyramid.mipmap import Mipmap, level_count, mipmap
+from .taps import levels_read, taps
+from .wrap import Wrap, parse_wrap
+
+
+
+def sample(
+    texture: Union[Tensor, Mipmap],
+    uv: Tensor,
+    *,
+    filter: str = "bilinear",
+    wrap: Wrap = "repeat",
+    border_value: float = 0.0,
+    uv_dx: Optional[Tensor] = None,
+    uv_dy: Optional[Tensor] = None,
+    lod_bias: Union[float, Tensor] = 0.0,
+    max_aniso: float = 16,
+    tolerance: float = DEFAULT_TOLERANCE,
+) -> Tensor:
+    """Sample a texture at uv coordinates.
+
+    Args:
+        texture: [B, C, H, W] float tensor, or a Mipmap (``difftex.mipmap``);
+            B = 1 broadcasts over the uv batch. The single-level filters read
+            a Mipmap's level 0; the mip filters build the pyramid of a plain
+            tensor on the fly (differentiably; trilinear, nearest-mip,
+            anisotropic and auto only as deep as the points read).
+        uv: [B, Ho, Wo, 2]; (0, 0) is the top-left corner of texel (0, 0),
+            (1, 1) the bottom-right corner of the last texel; u runs along the
+            width, v along the rows (DESIGN.md). ``grid_sample`` with
+            ``grid = 2 * uv - 1`` and ``align_corners=False`` samples the same
+            point. B = 1 broadcasts over the texture batch.
+        filter: "nearest" (round half to even, like grid_sample), "bilinear",
+            "bicubic" (Keys cubic, a = -0.75, like grid_sample); the mip
+            filters "trilinear" (level ``D = log2 L + lod_bias``, L the longer
+            footprint vector in texels, blend of floor(D) and floor(D) + 1),
+            "nearest-mip" (bilinear at level round(D)), "anisotropic" (up to
+            max_aniso trilinear taps along the footprint's major axis),
+            "ewa" (Gaussian elliptical weighted average, pbrt-v4 style) and
+            "auto" (per pixel the cheapest that ``tolerance`` allows: one
+            bilinear tap on level 0 where the footprint is under half a
+            texel, one trilinear tap where
+            the footprint is nearly round, else anisotropic with just enough
+            taps). See ``difftex.filters`` for each.
+        wrap: "repeat" | "clamp" | "mirror" | "border", one for both axes or a
+            pair (wrap_u, wrap_v).
+        border_value: the constant that "border" reads outside the texture
+            (a finite number, the same for every channel).
+        uv_dx, uv_dy: [B, Ho, Wo, 2] uv per pixel column / row (times
+            (W, H) texels per pixel); required by the mip filters. B = 1
+            broadcasts.
+        lod_bias: added to the level; a number or a [B, Ho, Wo] tensor.
+        max_aniso: most taps per pixel ("anisotropic", "auto"), largest
+            axis ratio kept ("ewa"); a number in [1, 1024].
+        tolerance: "auto" only: how much wider a tap's prefilter (2^level)
+            may be than the anisotropic filter's, as a fraction; a number
+            >= 0. 0 takes the anisotropic filter's taps (fewer only where
+            the minor axis is under half a level-0 texel); larger values
+            take ``1 + tolerance`` times fewer taps (rounded up) and blur
+            more across the footprint. The default 0.1 stays within 0.5 dB
+            of "anisotropic" at the same max_aniso on the test scenes.
+
+    Returns:
+        [B, C, Ho, Wo], same dtype and device as the inputs.
+
+    Gradients flow to texture (through every mip level back to the base) and
+    uv (nearest: texture only), and for the mip filters to
+    uv_dx, uv_dy and lod_bias through the level blend and the tap placement
+    (nearest-mip: none). The single-level backward is itself differentiable
+    (double backward). A pixel with a NaN or infinite uv comes out NaN and
+    passes no gradient to the texture; other pixels are unaffected. Zero or
+    NaN derivatives read level 0, infinite ones the coarsest level; both
+    give finite values and zero derivative gradients.
+
+    Raises ValueError naming the argument on bad shapes, batch mismatch,
+    different devices, an unknown filter / wrap, missing derivatives for a
+    mip filter, ``max_aniso`` outside [1, 1024], ``tolerance < 0`` or a
+    non-finite ``border_value``; TypeError on non-float tensors, mixed dtypes
+    or a ``border_value`` that is not a number.
+    """
+    pyramid = None
+    if isinstance(texture, Mipmap):
+        pyramid = mipmap(list(texture.levels))  # re-validates user-built levels
+        texture = pyramid.levels[0]
+    check_float("texture", texture, 4, shape_doc="[B, C, H, W]")
+    check_float("uv", uv, 4, last=2, shape_doc="[B, Ho, Wo, 2]")
+    check_same("uv", uv, "texture", texture)
+    if texture.shape[-1] < 1 or texture.shape[-2] < 1 or texture.shape[1] < 1:
+        raise ValueError(f"texture: expected C, H, W >= 1, got shape {tuple(texture.shape)}")
+    wrap_u, wrap_v = parse_wrap(wrap)
+    check_filter(filter)
+    max_aniso = check_number("max_aniso", max_aniso, 1, MAX_ANISO)
+    border_value = check_number("border_value", border_value, -math.inf)
+    tolerance = check_number("tolerance", tolerance, 0)
+    _, Ho, Wo, _ = uv.shape
+    derivs = _check_derivatives(filter, uv, texture, uv_dx, uv_dy)
+    bias = _check_bias(lod_bias, uv, texture)
+    sizes = [texture.shape[0], uv.shape[0]] + [d.shape[0] for d in derivs]
+    names = ["texture", "uv", "uv_dx", "uv_dy"][:len(sizes)]
+    if isinstance(bias, Tensor) and bias.dim() == 3:
+        sizes.append(bias.shape[0])
+        names.append("lod_bias")
+    B = broadcast_batch(names, sizes)
+    Bt, C = texture.shape[:2]
+    if B * Ho * Wo == 0:
+        # An empty image: nothing to read, but the result stays in the inputs' graph.
+        parts = [t for t in (texture, uv, *derivs, bias) if isinstance(t, Tensor)]
+        return sum(t.reshape(-1)[:0].reshape(B, C, Ho, Wo) for t in parts)
+    if filter in MIP_FILTERS:
+        if pyramid is None:
+            pyramid = texture
+        return _sample_mip(pyramid, uv, derivs[0], derivs[1], bias, B, filter, max_aniso, tolerance,
+                           wrap_u, wrap_v, border_value)
+    flat_uv = uv.expand(B, -1, -1, -1).reshape(B, -1, 2)
+    out = separable_sample(texture, flat_uv, SEPARABLE[filter], wrap_u, wrap_v, border_value)
+    return out.view(B, C, Ho, Wo)
+
+
+def _check_derivatives(filter: str, uv: Tensor, texture: Tensor, uv_dx: object, uv_dy: object) -> list[Tensor]:
+    """Validated [uv_dx, uv_dy], or [] where neither is given to a single-level filter."""
+    if uv_dx is None and uv_dy is None and filter not in MIP_FILTERS:
+        return []
+    B, Ho, Wo, _ = uv.shape
+    for name, d in (("uv_dx", uv_dx), ("uv_dy", uv_dy)):
+        if d is None:
+            raise ValueError(f"{name}: required by filter {filter!r} (and given together with "
+                             f"{'uv_dy' if name == 'uv_dx' else 'uv_dx'}): expected [B, Ho, Wo, 2] = "
+                             f"[{B}, {Ho}, {Wo}, 2], got None")
+        check_float(name, d, 4, last=2, shape_doc=f"[B, Ho, Wo, 2] = [{B}, {Ho}, {Wo}, 2]")
+        check_same(name, d, "texture", texture)
+        if tuple(d.shape[1:3]) != (Ho, Wo):
+            raise ValueError(f"{name}: expected shape [B, Ho, Wo, 2] = [{B}, {Ho}, {Wo}, 2] like uv, "
+                             f"got {describe(d)}")
+    return [uv_dx, uv_dy]  # type: ignore[list-item]
+
+
+def _check_bias(lod_bias: object, uv: Tensor, texture: Tensor) -> Union[float, Tensor]:
+    if isinstance(lod_bias, Tensor):
+        B, Ho, Wo, _ = uv.shape
+        check_float("lod_bias", lod_bias, (0, 3), shape_doc=f"scalar or [B, Ho, Wo] = [{B}, {Ho}, {Wo}]")
+        check_same("lod_bias", lod_bias, "texture", texture)
+        if lod_bias.dim() == 3 and tuple(lod_bias.shape[1:]) != (Ho, Wo):
+            raise ValueError(f"lod_bias: expected a scalar or [B, Ho, Wo] = [{B}, {Ho}, {Wo}] like uv, "
+                             f"got {describe(lod_bias)}")
+        return lod_bias
+    if isinstance(lod_bias, bool) or not isinstance(lod_bias, numbers.Real):
+        raise TypeError(f"lod_bias: expected a number or a float tensor [B, Ho, Wo], got {type(lod_bias).__name__}")
+    return float(lod_bias)
+
+
+def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy: Tensor,
+                bias: Union[float, Tensor], B: int, filter: str, max_aniso: float, tolerance: float,
+                wrap_u: str, wrap_v: str, border: float) -> Tensor:
+    """The mip filters on flat point lists; one pass per texture of the batch.
+
+    A plain texture's pyramid is built only as deep as its points read (the
+    same values and gradients as the full chain; a view that only magnifies
+    builds none): by the reading node of the bilinear-tap filters
+    (``TexturePyramid``), here for EWA, which reads the full chain.
+    """
+    base = pyramid.levels[0] if isinstance(pyramid, Mipmap) else pyramid
+    Bt, C, H, W = base.shape
+    _, Ho, Wo, _ = uv.shape
+    P = Ho * Wo
+    flat = lambda t: t.expand(B, Ho, Wo, *t.shape[3:]).reshape(B * P, *t.shape[3:])
+    pts, dx, dy = flat(uv), flat(uv_dx), flat(uv_dy)
+    if isinstance(bias, Tensor):
+        bias = flat(bias) if bias.dim() == 3 else bias
+    n_levels = len(pyramid.levels) if isinstance(pyramid, Mipmap) else level_count(H, W)
+    levels = pyramid.levels if isinstance(pyramid, Mipmap) else None
+    if filter == "ewa":
+        fp = footprint(dx, dy, H, W)
+        ell = ellipse(fp)
+        if levels is None:
+            levels = mipmap(pyramid, max_levels=n_levels).levels  # EWA reads levels with its own gather
+    else:
+        D, axis, count = taps(filter, dx, dy, bias, H, W, n_levels, max_aniso, tolerance)
+        if levels is None:
+            # The bilinear-tap filters get the texture and build its pyramid inside their reading node.
+            n_levels = levels_read(D, n_levels, filter == "nearest-mip")
+            if filter == "nearest-mip":
+                D = D.clamp(max=n_levels - 1)  # round(D) may lie below D
+
+    def run(lv: Levels, sl: slice) -> Tensor:
+        if filter == "ewa":
+            b = bias[sl] if isinstance(bias, Tensor) and bias.dim() == 1 else bias
+            f = type(fp)(*(x[sl] for x in fp))
+            e = type(ell)(*(x[sl] for x in ell))
+            return ewa_points(lv, pts[sl], f, e, b, max_aniso, wrap_u, wrap_v, border)
+        return trilinear_points(lv, pts[sl], D[sl], wrap_u, wrap_v, border, nearest_mip=filter == "nearest-mip",
+                                axis=None if axis is None else axis[sl], count=None if count is None else count[sl])
+
+    def levels_of(i: int | None) -> Levels:
+        if levels is None:
+            return TexturePyramid(base if i is None else base[i:i + 1], n_levels)
+        return levels if i is None else [lv[i:i + 1] for lv in levels]
+
+    if Bt == 1:
+        # One texture for every view: all points in one flat list.
+        return run(levels_of(None), slice(None)).view(C, B, Ho, Wo).transpose(0, 1)
+    outs = [run(levels_of(i), slice(i * P, (i + 1) * P)) for i in range(B)]
+    return torch.stack(outs).view(B, C, Ho, Wo)

@@ -1,0 +1,179 @@
+"""The native CPU kernel of the mip taps: where it is used, and how it falls back.
+
+Its values and gradients against the reference are in tests/test_backend.py.
+"""
+from __future__ import annotations
+
+import importlib
+import types
+
+import pytest
+import torch
+
+import difftex
+from difftex.texture import native
+from difftex.texture import taps as taps_mod
+from tests.conftest import use_backend
+
+f64 = torch.float64
+backend_mod = importlib.import_module("difftex.backend")  # the module, not the function difftex.backend
+BUILT = native.load() is not None
+needs_kernel = pytest.mark.skipif(not BUILT, reason="native kernel not built here (no compiler or ninja)")
+
+
+def _case(dtype=f64, B=1):
+    g = torch.Generator().manual_seed(0)
+    tex = torch.rand(B, 2, 16, 12, generator=g, dtype=dtype)
+    uv = torch.rand(B, 3, 4, 2, generator=g, dtype=dtype) * 2 - 0.5
+    dx = torch.randn(B, 3, 4, 2, generator=g, dtype=dtype) * 0.2
+    dy = torch.randn(B, 3, 4, 2, generator=g, dtype=dtype) * 0.05
+    return tex, uv, dx, dy
+
+
+@needs_kernel
+@pytest.mark.parametrize("filter", ["trilinear", "nearest-mip", "anisotropic", "auto", "bilinear", "ewa"])
+def test_the_tap_filters_run_on_the_kernel_forward_and_backward(filter, monkeypatch):
+    calls = []
+    real = native.load()
+    spy = types.SimpleNamespace(box2=real.box2, **{
+        name: (lambda name: lambda *a: calls.append(name) or getattr(real, name)(*a))(name)
+        for name in ("forward", "backward", "front", "ewa", "ewa_backward")})
+    monkeypatch.setattr(native, "load", lambda: spy)
+    tex, uv, dx, dy = (t.requires_grad_() for t in _case())
+    taps = filter in ("trilinear", "nearest-mip", "anisotropic", "auto")
+    kernel = (["forward", "backward"] if taps else ["ewa", "ewa_backward"] if filter == "ewa" else [])
+    difftex.sample(tex, uv, filter=filter, uv_dx=dx, uv_dy=dy).sum().backward()
+    assert calls == kernel
+    # Derivatives without a gradient: the taps' footprint front end runs on the kernel too.
+    calls.clear()
+    difftex.sample(tex, uv, filter=filter, uv_dx=dx.detach(), uv_dy=dy.detach()).sum().backward()
+    assert calls == (["front"] if taps else []) + kernel
+    calls.clear()
+    with torch.no_grad():
+        difftex.sample(tex, uv, filter=filter, uv_dx=dx, uv_dy=dy, lod_bias=torch.zeros(1, 3, 4, dtype=f64))
+    assert calls == (["front"] if taps else []) + kernel[:1]
+
+
+def _front_cases(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Footprints over 16 octaves with every degenerate case, and per-point biases with non-finite ones."""
+    g = torch.Generator().manual_seed(3)
+    M = 4000
+    dx = torch.randn(M, 2, generator=g, dtype=dtype) * torch.exp(torch.randn(M, 1, generator=g, dtype=dtype) * 3)
+    dy = torch.randn(M, 2, generator=g, dtype=dtype) * torch.exp(torch.randn(M, 1, generator=g, dtype=dtype) * 3)
+    dx[:10] = dy[:10] = 0.0  # a point
+    dx[10:20, 0] = float("nan")
+    dy[20:30, 1] = float("inf")
+    dx[30:35, 1] = -float("inf")
+    dx[35:40, 0], dy[35:40, 1] = float("nan"), float("inf")  # NaN wins
+    dy[40:60] = dx[40:60] * 3  # rank 1: minor axis 0
+    dy[60:80] = torch.stack((-dx[60:80, 1], dx[60:80, 0]), -1)  # round in uv (not in texels unless square)
+    bias = torch.randn(M, generator=g, dtype=dtype) * 2
+    bias[100:103] = torch.tensor([float("nan"), float("inf"), -float("inf")], dtype=dtype)
+    bias[103:105] = torch.tensor([500.0, -500.0], dtype=dtype)
+    return dx, dy, bias
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, f64])
+@pytest.mark.parametrize("filter", ["trilinear", "anisotropic", "auto"])
+@pytest.mark.parametrize("max_aniso, tolerance", [(1, 0.1), (4.5, 0.0), (16, 0.1), (16, 2.0)])
+def test_the_kernel_front_end_gives_the_torch_front_end(dtype, filter, max_aniso, tolerance):
+    dx, dy, bias = _front_cases(dtype)
+    for b in (0.25, bias, torch.tensor(-1.5, dtype=dtype)):
+        for H, W in ((64, 128), (1, 7)):
+            args = (filter, dx, dy, b, H, W, 6 if H > 1 else 4, max_aniso, tolerance)
+            D, axis, n = taps_mod.taps(*args)
+            with use_backend("reference"):
+                D_ref, axis_ref, n_ref = taps_mod.taps(*args)
+            tol = 2e-6 if dtype == torch.float32 else 1e-12
+            torch.testing.assert_close(D, D_ref, atol=tol, rtol=0)
+            assert torch.isfinite(D).all()
+            if filter == "trilinear":
+                assert axis is None and n is None and axis_ref is None and n_ref is None
+                continue
+            if n_ref is None:  # the torch path's one-tap-everywhere shortcut
+                n_ref, axis_ref = torch.ones_like(n), torch.zeros_like(axis)
+            assert torch.equal(n, n_ref)
+            many = n > 1  # the axis of a one-tap point is unused (0 in the kernel)
+            scale = axis_ref[many].abs().amax(-1, keepdim=True)
+            torch.testing.assert_close(axis[many] / scale, axis_ref[many] / scale, atol=tol, rtol=0)
+            assert torch.isfinite(axis).all()
+
+
+def test_disabled_or_failed_build_falls_back_to_the_torch_path(monkeypatch):
+    tex, uv, dx, dy = _case()
+    ref = difftex.sample(tex, uv, filter="anisotropic", uv_dx=dx, uv_dy=dy)
+    monkeypatch.setenv("DIFFTEX_NATIVE", "0")
+    assert native.load() is None and backend_mod.native_kernel(uv) is None
+    monkeypatch.delenv("DIFFTEX_NATIVE")
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("Ninja is required to load C++ extensions")
+
+    monkeypatch.setattr(native, "_module", None)
+    monkeypatch.setattr(native, "_tried", False)
+    monkeypatch.setattr("torch.utils.cpp_extension.load", broken)
+    with pytest.warns(RuntimeWarning, match=r"native CPU kernel unavailable, using the torch path "
+                                            r"\(RuntimeError: Ninja is required"):
+        assert native.load() is None
+    assert native.load() is None  # tried once, no second warning or build
+    out = difftex.sample(tex, uv, filter="anisotropic", uv_dx=dx, uv_dy=dy)
+    torch.testing.assert_close(out, ref, atol=1e-12, rtol=0)
+
+
+def test_float16_and_cuda_points_take_the_torch_path():
+    tex, uv, dx, dy = _case(torch.float16)
+    assert backend_mod.native_kernel(uv) is None
+    if torch.cuda.is_available():
+        assert backend_mod.native_kernel(uv.float().cuda()) is None
+    out = difftex.sample(tex, uv, filter="trilinear", uv_dx=dx, uv_dy=dy)
+    ref = difftex.sample(tex.double(), uv.double(), filter="trilinear", uv_dx=dx.double(), uv_dy=dy.double())
+    assert out.dtype == torch.float16
+    torch.testing.assert_close(out.double(), ref, atol=3e-3, rtol=0)
+
+
+@needs_kernel
+@pytest.mark.parametrize("filter", ["trilinear", "anisotropic", "ewa"])
+def test_double_backward_through_the_kernel_uses_the_torch_path(filter):
+    tex, uv, dx, dy = _case()
+    assert backend_mod.current() == "auto" and backend_mod.native_kernel(uv) is not None
+    # Away from texel centres and level boundaries (kinks): uv and footprints as drawn.
+    tex.requires_grad_()
+    uv.requires_grad_()
+
+    def f(t, u):
+        return difftex.sample(t, u, filter=filter, uv_dx=dx, uv_dy=dy, wrap="repeat")
+
+    assert torch.autograd.gradgradcheck(f, (tex, uv), atol=1e-6, rtol=1e-5)
+
+
+@needs_kernel
+def test_threads_split_the_points_without_changing_the_result():
+    # The forward splits the points over torch's intra-op threads (chunks of 1024).
+    g = torch.Generator().manual_seed(1)
+    tex = torch.rand(1, 3, 64, 64, generator=g)
+    uv = torch.rand(1, 60, 90, 2, generator=g) * 3 - 1
+    dx = torch.randn(1, 60, 90, 2, generator=g) * 0.1
+    dy = torch.randn(1, 60, 90, 2, generator=g) * 0.02
+    threads = torch.get_num_threads()
+    try:
+        outs = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            outs.append(difftex.sample(tex, uv, filter="anisotropic", uv_dx=dx, uv_dy=dy))
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(outs[0], outs[1])
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, f64])
+def test_the_kernel_box_step_is_bit_identical_to_the_torch_one(dtype):
+    g = torch.Generator().manual_seed(4)
+    x = torch.rand(2, 3, 64, 130, generator=g, dtype=dtype).transpose(2, 3)  # non-contiguous, 130 x 64
+    y = x[..., 0::2] + x[..., 1::2]  # the torch path of mipmap._box2, the same sums in the same order
+    ref = torch.add(y[..., 0::2, :], y[..., 1::2, :]).mul_(0.25)
+    out = native.load().box2(x)
+    assert out.shape == (2, 3, 65, 32) and torch.equal(out, ref)
+    with pytest.raises(RuntimeError, match="even H and W"):
+        native.load().box2(x[..., :3, :])
