@@ -65,33 +65,25 @@ def backend(choice: str) -> _Switch:
         block with that choice and restores the previous one (per thread).
         Called on its own, the choice stays until the next call.
 
-    Raises ValueError naming ``choice`` for an unknown name, RuntimeError for
-    "native" where the kernel cannot be built (or ``DIFFTEX_NATIVE=0``).
+    Raises ValueError naming ``choice`` for an unknown name. Under "native", a
+    read of CPU float32 / float64 tensors raises RuntimeError where the kernel
+    cannot be built (or ``DIFFTEX_NATIVE=0``) instead of falling back.
     """
     if not isinstance(choice, str) or choice not in CHOICES:
         raise ValueError(f"backend: unknown choice {choice!r}; expected one of {CHOICES}")
-    if choice == "native":
-        from .texture import native
-        if native.load() is None:
-            raise RuntimeError("backend: 'native' asked for, but the native CPU kernel is not available "
-                               "(DIFFTEX_NATIVE=0, or its build failed: see the warning)")
     previous = current()
     _state.choice = choice
     return _Switch(previous)
 
 
-def native_kernel(like: Tensor):
-    """The native kernel module where it serves tensors like ``like``, else None.
+def wants_native(like: Tensor) -> bool:
+    """Whether reads of tensors like ``like`` go to the native kernel, where it is built.
 
-    It serves float32 / float64 CPU tensors under the choices "auto" and
-    "native", once built (the first call builds it).
+    Yes for float32 / float64 CPU tensors under the choices "auto" and
+    "native"; ``difftex.texture.native.kernel`` adds whether it built.
     """
-    choice = current()
-    if choice not in ("auto", "native") or like.device.type != "cpu" or like.dtype not in (torch.float32,
-                                                                                          torch.float64):
-        return None
-    from .texture import native
-    return native.load()
+    return (current() in ("auto", "native") and like.device.type == "cpu"
+            and like.dtype in (torch.float32, torch.float64))
 
 
 def single_level() -> str:

@@ -7,8 +7,8 @@ from typing import Optional, Sequence, Union
 import torch
 from torch import Tensor
 
-from ..backend import native_kernel
 from .._checks import broadcast_batch, check_float, check_same
+from . import native
 from .filters.anisotropic import anisotropic_taps, tap_count
 from .filters.auto import auto_tap_count
 from .lod import check_lod_bias, ellipse, footprint, level, log2_length, size_and_levels
@@ -19,20 +19,14 @@ from .pyramid.mipmap import level_count
 def levels_read(D: Tensor, levels: int, nearest: bool) -> int:
     """How many of ``levels`` pyramid levels the bilinear-tap filters read at the levels D (clamped to them).
 
-    The coarsest is round(D) for nearest-mip, else ceil(D), or floor(D) + 1
-    where D > 0 needs a gradient (``mip_blend`` then reads the upper level at
-    an integer D too, for d/dD).
+    The coarsest is round(D) for nearest-mip, else ceil(D): ``mip_blend``
+    reads the levels ``ceil(D) - 1`` and ``ceil(D)`` (the lower one only for
+    the derivative where D is an integer).
     """
     if D.numel() == 0:
         return 1
-    grad = D.requires_grad
     with torch.no_grad():
-        if nearest:
-            top = torch.floor(D + 0.5)
-        elif grad:
-            top = (torch.floor(D) + 1) * (D > 0).to(D.dtype)
-        else:
-            top = torch.ceil(D)
+        top = torch.floor(D + 0.5) if nearest else torch.ceil(D)
         return min(int(top.max().item()) + 1, levels)
 
 
@@ -51,7 +45,7 @@ def taps(filter: str, dx: Tensor, dy: Tensor, bias: Union[float, Tensor], height
     kind = {"trilinear": 0, "nearest-mip": 0, "anisotropic": 1, "auto": 2}[filter]
     grad = torch.is_grad_enabled() and (dx.requires_grad or dy.requires_grad or
                                         (isinstance(bias, Tensor) and bias.requires_grad))
-    kernel = None if grad else native_kernel(dx)
+    kernel = None if grad else native.kernel(dx)
     if kernel is not None:
         per_point = isinstance(bias, Tensor) and bias.dim() == 1
         D, axis, count = kernel.front(dx.contiguous(), dy.contiguous(),

@@ -40,7 +40,6 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from ...backend import native_kernel
 from .. import native
 from ..lod import Ellipse, Footprint, level
 from ..wrap import WRAP_CODES, drop_periods, wrap_index
@@ -189,7 +188,7 @@ def ewa_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse
     sigma, minor, log2_minor = _covariance(fp, ell, max_aniso)
     D = level(log2_minor, lod_bias, len(levels))
     scale = torch.exp2(fp.log2_scale)
-    if native_kernel(uv) is not None:
+    if native.kernel(uv) is not None:
         out = _NativeEWA.apply(uv_safe, sigma, minor, scale, D, (H, W, wrap_u, wrap_v, float(border)), *levels)
     else:
         out = _ewa_torch(levels, uv_safe, sigma, minor, scale, D, H, W, wrap_u, wrap_v, border)

@@ -29,7 +29,7 @@ from typing import Callable, Sequence, Union
 import torch
 from torch import Tensor
 
-from ...backend import native_kernel, single_level
+from ...backend import single_level
 from .. import native
 from ..pyramid.mipmap import build_levels, level_size, mipmap, pyramid_adjoint, step_adjoint
 from ..wrap import WRAP_CODES
@@ -180,7 +180,7 @@ def mip_blend(D: Tensor, levels: int, inputs: Sequence[Tensor], read: Reader, *,
 
     Args:
         D: [M] level per point, already clamped to ``[0, levels - 1]``
-            (``difftex.lod.level``); may carry a gradient.
+            (``difftex.texture.lod.level``); may carry a gradient.
         levels: number of levels.
         inputs: per-point tensors ``[M, ...]`` that ``read`` needs (uv, ...).
         read: ``read(used, sizes, [x[entries] for x in inputs])`` -> [C, E]:
@@ -191,33 +191,37 @@ def mip_blend(D: Tensor, levels: int, inputs: Sequence[Tensor], read: Reader, *,
 
     Returns:
         [C, M]: ``(1 - frac(D)) read(floor D) + frac(D) read(floor D + 1)``,
-        differentiable in D through the weights.
+        differentiable in D through the weights. At an integer ``D = k`` the
+        derivative is the one from below, ``read(k) - read(k - 1)``, and 0 at
+        ``D = 0`` (DESIGN.md, "mip level"); the native kernel does the same.
 
-    Every (point, level) pair to read is one *entry*: each point's lower
-    level, plus its upper level where that has a weight. Entries are sorted
-    by level once, so each level's entries are one contiguous block: one
-    gather of the inputs, one split, a read per level, one concatenation and
-    one ``index_add`` back to the points, whatever the number of levels (the
-    backward is as short). The upper level is skipped where its weight is 0
-    (exact integer level, clamped at either end) unless D needs a gradient
-    inside the pyramid (d/dD = upper - lower).
+    Every (point, level) pair to read is one *entry*: each point's level
+    ``floor(D)``, plus ``floor(D) + 1`` where D is not an integer, or, where
+    D is an integer k > 0 that needs a gradient, ``k - 1`` with weight 0 for
+    the derivative. Entries are sorted by level once, so each level's
+    entries are one contiguous block: one gather of the inputs, one split, a
+    read per level, one concatenation and one ``index_add`` back to the
+    points, whatever the number of levels (the backward is as short).
     """
     M = D.shape[0]
     Dd = D.detach()
-    if nearest:
-        k0 = torch.floor(Dd + 0.5).clamp_(0, levels - 1)
-        upper = None
-    else:
-        k0 = torch.floor(Dd).clamp_(0, levels - 1)
-        upper = (k0 < levels - 1) & ((Dd > k0) | (D.requires_grad & (Dd > 0)))
-        if not bool(upper.any()):
-            upper = None
+    k0 = torch.floor(Dd + 0.5 if nearest else Dd).clamp_(0, levels - 1)
     lev = k0.to(torch.uint8) if levels <= 256 else k0.long()
-    point = None
-    if upper is not None:
-        up = upper.nonzero().squeeze(1)
-        point = torch.cat((torch.arange(M, device=D.device), up))
-        lev = torch.cat((lev, lev.index_select(0, up) + 1))
+    point = role = None
+    if not nearest:
+        # role per entry: -1 the lower level of a pair (weight 1 - (D - k)), +1 the upper (weight 1 + (D - k)),
+        # 0 a level read alone (weight 1, no derivative).
+        up = Dd > k0
+        down = (Dd == k0) & (k0 > 0) if D.requires_grad else torch.zeros_like(up)
+        up_i, down_i = up.nonzero().squeeze(1), down.nonzero().squeeze(1)
+        if up_i.numel() or down_i.numel():
+            one = Dd.new_ones(())
+            role = torch.cat((down.to(Dd.dtype) - up.to(Dd.dtype), one.expand(up_i.numel()),
+                              -one.expand(down_i.numel())))
+            point = torch.cat((torch.arange(M, device=D.device), up_i, down_i))
+            lev = torch.cat((lev, lev.index_select(0, up_i) + 1, lev.index_select(0, down_i) - 1))
+        elif D.requires_grad:
+            role = Dd.new_zeros(M)  # no pair: a zero derivative, but the result stays in D's graph
     counts = torch.bincount(lev, minlength=levels).tolist()
     used = [k for k, c in enumerate(counts) if c]
     if len(used) > 1:
@@ -225,19 +229,15 @@ def mip_blend(D: Tensor, levels: int, inputs: Sequence[Tensor], read: Reader, *,
         perm = torch.sort(lev, stable=True).indices
         point = perm if point is None else point.index_select(0, perm)
         lev = lev.index_select(0, perm)
+        role = None if role is None else role.index_select(0, perm)
     if point is None:  # every point reads one level, in order
         xs, De = list(inputs), D
     else:
         xs = [x.index_select(0, point) for x in inputs]
         De = D.index_select(0, point)
     vals = read(used, [counts[k] for k in used], xs)
-    if not nearest:
-        # Tent weight 1 - |D - k|, written per side so that d/dD is -1 for
-        # the lower level and +1 for the upper one even where D = k exactly
-        # (the side's sign as a product: torch.where is 8x slower on CPU).
-        t = De - lev.to(D.dtype)
-        side = 2 * (t >= 0).to(D.dtype) - 1
-        vals = vals * (1 - t * side)
+    if role is not None:
+        vals = vals * (1 + role * (De - lev.to(D.dtype)))
     if point is None:
         return vals
     return vals.new_zeros((vals.shape[0], M)).index_add(1, point, vals)
@@ -265,7 +265,7 @@ def trilinear_points(levels: Levels, uv: Tensor, D: Tensor, wrap_u: str, wrap_v:
     On the CPU this runs the native kernel (``difftex.native``) where it is
     built, else (and on CUDA, and as the tests' reference) the torch path.
     """
-    if native_kernel(uv) is not None:
+    if native.kernel(uv) is not None:
         lv = build_levels(levels.texture, len(levels)) if isinstance(levels, TexturePyramid) else list(levels)
         return _NativeTaps.apply(uv, D, axis, count, (wrap_u, wrap_v, float(border), nearest_mip), *lv)
     # A non-finite uv reads a safe point and gets NaN put back, as the kernel

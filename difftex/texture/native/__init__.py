@@ -31,6 +31,8 @@ from typing import Callable, Optional, Sequence
 import torch
 from torch import Tensor
 
+from ...backend import current, wants_native
+
 _SOURCE = Path(__file__).resolve().parent / "csrc" / "mip_read.cpp"
 _NAME = "difftex_mip_read"
 _module: ModuleType | None = None
@@ -89,3 +91,19 @@ def double_backward(recompute: Callable[[], Tensor], saved: Sequence[Optional[Te
     for (i, _), g in zip(inputs, got):
         full[i] = g
     return tuple(full)
+
+
+def kernel(like: Tensor) -> ModuleType | None:
+    """The kernel module where ``difftex.backend``'s choice sends reads of tensors like ``like``, else None.
+
+    Builds the kernel on first use. Raises RuntimeError where the choice is
+    "native" and the kernel is not available (``DIFFTEX_NATIVE=0``, or the
+    build failed).
+    """
+    if not wants_native(like):
+        return None
+    module = load()
+    if module is None and current() == "native":
+        raise RuntimeError("difftex.backend('native'): the native CPU kernel is not available "
+                           "(DIFFTEX_NATIVE=0, or its build failed: see the warning)")
+    return module

@@ -104,7 +104,7 @@ def test_disabled_or_failed_build_falls_back_to_the_torch_path(monkeypatch):
     tex, uv, dx, dy = _case()
     ref = difftex.sample(tex, uv, filter="anisotropic", uv_dx=dx, uv_dy=dy)
     monkeypatch.setenv("DIFFTEX_NATIVE", "0")
-    assert native.load() is None and backend_mod.native_kernel(uv) is None
+    assert native.load() is None and native.kernel(uv) is None
     monkeypatch.delenv("DIFFTEX_NATIVE")
 
     def broken(*args, **kwargs):
@@ -123,9 +123,9 @@ def test_disabled_or_failed_build_falls_back_to_the_torch_path(monkeypatch):
 
 def test_float16_and_cuda_points_take_the_torch_path():
     tex, uv, dx, dy = _case(torch.float16)
-    assert backend_mod.native_kernel(uv) is None
+    assert native.kernel(uv) is None
     if torch.cuda.is_available():
-        assert backend_mod.native_kernel(uv.float().cuda()) is None
+        assert native.kernel(uv.float().cuda()) is None
     out = difftex.sample(tex, uv, filter="trilinear", uv_dx=dx, uv_dy=dy)
     ref = difftex.sample(tex.double(), uv.double(), filter="trilinear", uv_dx=dx.double(), uv_dy=dy.double())
     assert out.dtype == torch.float16
@@ -136,7 +136,7 @@ def test_float16_and_cuda_points_take_the_torch_path():
 @pytest.mark.parametrize("filter", ["trilinear", "anisotropic", "ewa"])
 def test_double_backward_through_the_kernel_uses_the_torch_path(filter):
     tex, uv, dx, dy = _case()
-    assert backend_mod.current() == "auto" and backend_mod.native_kernel(uv) is not None
+    assert backend_mod.current() == "auto" and native.kernel(uv) is not None
     # Away from texel centres and level boundaries (kinks): uv and footprints as drawn.
     tex.requires_grad_()
     uv.requires_grad_()
