@@ -129,8 +129,21 @@ def _decode_cv2(path: Path, what: str) -> np.ndarray:
     return array
 
 
+def _png_grey_key(data: np.ndarray) -> Optional[int]:
+    """The transparent grey value of a grey PNG's tRNS chunk (None without one); chunks before IDAT."""
+    raw, pos = data.tobytes(), 8
+    while pos + 8 <= len(raw):
+        length, tag = struct.unpack(">I4s", raw[pos:pos + 8])
+        if tag == b"tRNS" and length >= 2:
+            return struct.unpack(">H", raw[pos + 8:pos + 10])[0]
+        if tag in (b"IDAT", b"IEND"):  # tRNS must precede IDAT
+            return None
+        pos += 12 + length
+    return None
+
+
 def _read_png16(path: Path, header) -> np.ndarray:
-    """Decode a 16-bit non-palette PNG to uint16 [H, W, C] (C = the file's channels)."""
+    """Decode a 16-bit non-palette PNG to uint16 [H, W, C] (C = the file's channels, + alpha for tRNS)."""
     w, h, _, ctype, _ = header
     _check_size(path, w, h)
     array = _decode_cv2(path, "16-bit PNG")
@@ -141,6 +154,13 @@ def _read_png16(path: Path, header) -> np.ndarray:
     if ctype in (0, 4) and array.shape[2] in (3, 4):
         # OpenCV has no grey + alpha layout: it expands grey (with alpha or a tRNS key) to BGR(A), B = G = R.
         array = array[:, :, [0, 3]] if array.shape[2] == 4 else array[:, :, :1]
+    if ctype == 0 and array.shape[2] == 1:
+        # OpenCV turns an RGB tRNS key into alpha but drops a grey one; Pillow's 8-bit path keeps both.
+        # tRNS precedes IDAT, so the first MiB holds it unless huge ancillary chunks come first.
+        key = _png_grey_key(np.fromfile(path, dtype=np.uint8, count=1 << 20))
+        if key is not None:
+            alpha = np.where(array[:, :, 0] == key, 0, 65535).astype(np.uint16)
+            array = np.concatenate([array, alpha[:, :, None]], axis=2)
     if array.shape[:2] != (h, w):
         raise ValueError(f"{str(path)!r}: decoded {array.shape[1]}x{array.shape[0]} pixels, "
                          f"the header says {w}x{h}")
@@ -384,7 +404,8 @@ def save_image(path: PathLike, image: torch.Tensor, *, bits: int = 8, srgb: bool
     if srgb:
         import kornia.color
 
-        # kornia's encoder is not exactly 0 at 0 / 1 at 1 in float64 round-off; clamp keeps codes in range.
+        # kornia's encoder gives 1 - 2^-53 for 1 (round-off; the code still rounds to 255 / 65535); the clamp
+        # only guarantees the code range.
         x = _apply_to_colour(x, kornia.color.linear_rgb_to_rgb).clamp(0.0, 1.0)
     array = x.permute(1, 2, 0).numpy()
     if bits == 16:

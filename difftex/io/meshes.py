@@ -1,9 +1,9 @@
-"""Meshes (OBJ parser / trimesh) in difftex's conventions.
+"""Meshes (own OBJ parser / trimesh for GLB, glTF, PLY) in difftex's conventions.
 
-Conventions (DESIGN.md section 2): textures are ``[1, C, H, W]`` floats in
-``[0, 1]``; uv ``(0, 0)`` is the top-left corner of the texture with ``v``
-running down the rows, so mesh loaders convert the files' v-up coordinate
-with ``v = 1 - v_file``.
+Conventions (DESIGN.md section 2): textures are ``[1, C, H, W]`` floats (in
+``[0, 1]`` from 8- / 16-bit files); uv ``(0, 0)`` is the top-left corner of
+the texture with ``v`` running down the rows, so mesh loaders convert the
+files' v-up coordinate with ``v = 1 - v_file``.
 
 Why OBJ has its own parser: an OBJ face corner indexes positions (``v``),
 texture coordinates (``vt``) and normals (``vn``) independently.  trimesh
@@ -15,6 +15,13 @@ file's positions, uv list and per-corner indices exactly.  The other formats
 (GLB / glTF / PLY) store one uv per vertex in the file itself, so trimesh's
 vertex list is already the exact content of the file and ``uv_faces`` equals
 ``faces`` there.
+
+What is rejected rather than loaded (ValueError naming the file): NaN or
+infinite coordinates (OBJ: with the line, other formats: with the field),
+since one of them poisons every sum a rasterizer or sampler forms; face
+indices out of range, or past int64 (numpy would raise a bare
+OverflowError).  Float fields take a floating ``dtype`` only (TypeError
+otherwise: an integer dtype would truncate uv).
 """
 
 from __future__ import annotations
