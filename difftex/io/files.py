@@ -1,6 +1,7 @@
 """Where files are: the bundled data folder and the shared checks of a file argument."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Union
 
@@ -33,10 +34,18 @@ def data_path(name: str) -> Path:
     return path
 
 
+def check_path(path: PathLike, what: str) -> Path:
+    """``path`` as a Path; TypeError naming the argument for anything but a str or os.PathLike."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path must be a str or os.PathLike naming the {what} file, "
+                        f"got {type(path).__name__}")
+    return Path(path)
+
 
 def check_file(path: PathLike, what: str, extensions: tuple[str, ...]) -> Path:
-    """``path`` as a Path; FileNotFoundError if it is no file, ValueError naming it for another extension."""
-    path = Path(path)
+    """``path`` as a Path; TypeError for a non-path, FileNotFoundError if it is no file, ValueError
+    naming it for another extension."""
+    path = check_path(path, what)
     if not path.is_file():
         raise FileNotFoundError(f"{what} file not found: {str(path)!r}")
     if path.suffix.lower() not in extensions:

@@ -1,9 +1,9 @@
-"""Meshes (OBJ parser / trimesh) in difftex's conventions.
+"""Meshes (own OBJ parser / trimesh for GLB, glTF, PLY) in difftex's conventions.
 
-Conventions (DESIGN.md section 2): textures are ``[1, C, H, W]`` floats in
-``[0, 1]``; uv ``(0, 0)`` is the top-left corner of the texture with ``v``
-running down the rows, so mesh loaders convert the files' v-up coordinate
-with ``v = 1 - v_file``.
+Conventions (DESIGN.md section 2): textures are ``[1, C, H, W]`` floats (in
+``[0, 1]`` from 8- / 16-bit files); uv ``(0, 0)`` is the top-left corner of
+the texture with ``v`` running down the rows, so mesh loaders convert the
+files' v-up coordinate with ``v = 1 - v_file``.
 
 Why OBJ has its own parser: an OBJ face corner indexes positions (``v``),
 texture coordinates (``vt``) and normals (``vn``) independently.  trimesh
@@ -15,10 +15,18 @@ file's positions, uv list and per-corner indices exactly.  The other formats
 (GLB / glTF / PLY) store one uv per vertex in the file itself, so trimesh's
 vertex list is already the exact content of the file and ``uv_faces`` equals
 ``faces`` there.
+
+What is rejected rather than loaded (ValueError naming the file): NaN or
+infinite coordinates (OBJ: with the line, other formats: with the field),
+since one of them poisons every sum a rasterizer or sampler forms; face
+indices out of range, or past int64 (numpy would raise a bare
+OverflowError).  Float fields take a floating ``dtype`` only (TypeError
+otherwise: an integer dtype would truncate uv).
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +38,25 @@ from .files import PathLike, check_file
 __all__ = ["MESH_EXTENSIONS", "load_mesh"]
 
 MESH_EXTENSIONS = (".obj", ".glb", ".gltf", ".ply")
+
+_INDEX_LIMIT = 2 ** 62  # far past any real element count, safely inside int64 after the 1-based shift
+
+
+def _coords(parts: list[str], n: int) -> list[float]:
+    """The first ``n`` numbers of a v / vt / vn line; ValueError for NaN / inf (they would poison every sum)."""
+    xs = [float(x) for x in parts[:n]]
+    if not all(math.isfinite(x) for x in xs):
+        raise ValueError(f"non-finite coordinate {xs}; expected finite numbers")
+    return xs
+
+
+def _index(text: str, count: int) -> int:
+    """A 1-based (or negative, relative) OBJ index as 0-based; ValueError past int64."""
+    i = int(text)
+    # An index this large can never be in range; int64 conversion would raise a bare OverflowError.
+    if not -_INDEX_LIMIT < i < _INDEX_LIMIT:
+        raise ValueError(f"index {text} out of the int64 range")
+    return i - 1 if i > 0 else count + i
 
 
 def _parse_obj(path: Path):
@@ -50,27 +77,24 @@ def _parse_obj(path: Path):
             try:
                 if tag in ("v", "vn") and len(parts) < 4:
                     raise ValueError(f"'{tag}' needs 3 coordinates")
+                if tag == "vt" and len(parts) < 2:
+                    raise ValueError("'vt' needs at least a u coordinate")
                 if tag == "v":
-                    v.append([float(x) for x in parts[1:4]])
+                    v.append(_coords(parts[1:], 3))
                 elif tag == "vt":
                     # vt u [v [w]]: a missing v means 0 per the OBJ spec.
-                    u = float(parts[1])
-                    vv = float(parts[2]) if len(parts) > 2 else 0.0
-                    vt.append([u, vv])
+                    vt.append((_coords(parts[1:], 2) + [0.0])[:2])
                 elif tag == "vn":
-                    vn.append([float(x) for x in parts[1:4]])
+                    vn.append(_coords(parts[1:], 3))
                 elif tag == "f":
                     corners = []
                     for c in parts[1:]:
                         idx = c.split("/")
-                        iv = int(idx[0])
-                        it = int(idx[1]) if len(idx) > 1 and idx[1] else 0
-                        inn = int(idx[2]) if len(idx) > 2 and idx[2] else 0
                         # OBJ is 1-based; negative indices count back from the
-                        # elements read so far.  0 marks "absent".
-                        iv = iv - 1 if iv > 0 else len(v) + iv
-                        it = (it - 1 if it > 0 else len(vt) + it) if it else -1
-                        inn = (inn - 1 if inn > 0 else len(vn) + inn) if inn else -1
+                        # elements read so far.  -1 marks "absent".
+                        iv = _index(idx[0], len(v))
+                        it = _index(idx[1], len(vt)) if len(idx) > 1 and idx[1] else -1
+                        inn = _index(idx[2], len(vn)) if len(idx) > 2 and idx[2] else -1
                         corners.append((iv, it, inn))
                     if len(corners) < 3:
                         raise ValueError("a face needs at least 3 corners")
@@ -175,22 +199,34 @@ def load_mesh(path: PathLike, *, device=None, dtype: torch.dtype = torch.float32
             per-corner indices; polygons are fan-triangulated) or ``.glb`` /
             ``.gltf`` / ``.ply`` through trimesh (one uv per vertex, scene
             transforms applied, several meshes concatenated).
-        device, dtype: of the float fields; index fields are int64.
+        device: of every field.
+        dtype: of the float fields (positions, uv, normals), a floating
+            ``torch.dtype``; index fields are int64.
 
     Returns:
         A :class:`Mesh` with uv in DESIGN.md's convention, ``v = 1 - v_file``.
 
-    Nothing here is differentiable (it is file input).  Raises
-    FileNotFoundError for a missing file, ValueError naming the path for an
+    Nothing here is differentiable (it is file input).  Raises TypeError
+    naming ``path`` when it is no str / PathLike and naming ``dtype`` when
+    it is not a floating torch.dtype (an integer dtype would truncate uv);
+    FileNotFoundError for a missing file; ValueError naming the path for an
     unsupported extension, a file without faces or without uv, an
-    unparsable line or an out-of-range index.
+    unparsable line, a NaN / infinite coordinate (OBJ: with its line; other
+    formats: with the field), an index past int64 or out of range.
     """
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise TypeError(f"dtype must be a floating torch.dtype such as torch.float32 (it is the dtype of "
+                        f"positions, uv and normals), got {dtype!r}")
     path = check_file(path, "mesh", MESH_EXTENSIONS)
     if path.suffix.lower() == ".obj":
         arrays = _load_obj(path)
     else:
         arrays = _load_trimesh(path)
     pos, faces, uv, uv_faces, normals, normal_faces = arrays
+    for name, a in (("positions", pos), ("uv", uv), ("normals", normals)):
+        # The OBJ parser already names the line; this catches the binary formats.
+        if a is not None and not np.isfinite(a).all():
+            raise ValueError(f"{str(path)!r}: {name} has NaN or infinite values; expected finite coordinates")
 
     def f(a):
         return None if a is None else torch.as_tensor(np.ascontiguousarray(a), dtype=dtype, device=device)
@@ -199,4 +235,3 @@ def load_mesh(path: PathLike, *, device=None, dtype: torch.dtype = torch.float32
         return None if a is None else torch.as_tensor(np.ascontiguousarray(a), dtype=torch.int64, device=device)
 
     return Mesh(f(pos), i(faces), f(uv), i(uv_faces), f(normals), i(normal_faces))
-
