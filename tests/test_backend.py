@@ -20,10 +20,10 @@ import torch
 
 import difftex
 from difftex import WRAP_MODES
+from difftex.texture.options import FILTERS, MIP_FILTERS
 from tests.conftest import use_backend
 
-FILTERS = ("nearest", "bilinear", "bicubic", "trilinear", "nearest-mip", "anisotropic", "ewa", "auto")
-MIP = ("trilinear", "nearest-mip", "anisotropic", "ewa", "auto")
+MIP = MIP_FILTERS
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # conftest.py: many small ops
 

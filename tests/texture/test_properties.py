@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 
 import difftex
 from difftex import WRAP_MODES
+from difftex.texture.options import FILTERS
 
-FILTERS = ("nearest", "bilinear", "bicubic", "trilinear", "nearest-mip", "anisotropic", "ewa", "auto")
 # Outputs are convex combinations of texels (and the border constant): all but bicubic.
 CONVEX = ("nearest", "bilinear", "trilinear", "nearest-mip", "anisotropic", "ewa", "auto")
 SETTINGS = dict(deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow],

@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 
 import difftex
+from difftex.texture.options import MIP_FILTERS
 from difftex import levels_needed, mipmap
 from difftex.texture.filters import trilinear as trilinear_mod
 from difftex.texture.filters.anisotropic import tap_count
@@ -233,7 +234,7 @@ def test_bad_tolerance():
 
 # ------------------------------------------------------------ levels_needed
 
-MIP = ("trilinear", "nearest-mip", "anisotropic", "ewa", "auto")
+MIP = MIP_FILTERS
 
 
 @pytest.mark.parametrize("filter", MIP)
