@@ -45,10 +45,22 @@ def check_tensor(x, name: str, k: int) -> torch.Tensor:
     return x
 
 
+def as_float(x, name: str, shape_doc: str, dtype: torch.dtype, device) -> torch.Tensor:
+    """A number or (nested) sequence of numbers as a tensor; TypeError naming ``name`` for anything else."""
+    # torch.as_tensor reads a str as a sequence type it cannot convert ("new(): invalid data type 'str'").
+    bad = isinstance(x, (str, bytes))
+    if not bad:
+        try:
+            return torch.as_tensor(x, dtype=dtype, device=device)
+        except (TypeError, ValueError, RuntimeError):
+            bad = True
+    raise TypeError(f"{name} must be a tensor or numbers of shape {shape_doc}, got {type(x).__name__} {x!r}")
+
+
 def as_param(x, name: str, k: int, like: torch.Tensor) -> torch.Tensor:
     """A parameter given as a tensor or a plain sequence, on ``like``'s device, broadcastable with ``like``."""
     if not isinstance(x, torch.Tensor):
-        x = torch.as_tensor(x, dtype=like.dtype, device=like.device)
+        x = as_float(x, name, f"[..., {k}]", like.dtype, like.device)
     x = check_tensor(x, name, k)
     broadcast(like.shape, x.shape, name, "points")
     return x

@@ -6,7 +6,7 @@ from typing import Optional, Union
 
 import torch
 
-from .common import TensorLike, UVResult, broadcast, check_derivs, check_tensor, result
+from .common import TensorLike, UVResult, as_float, broadcast, check_derivs, check_tensor, result
 
 
 def texture_matrix(uv: torch.Tensor, matrix: torch.Tensor, *,
@@ -94,7 +94,8 @@ def uv_transform(shift: TensorLike = (0.0, 0.0), angle: Union[float, torch.Tenso
         (``torch.linalg.inv``) undoes it.
 
     Differentiable w.r.t. every tensor argument.  Raises ValueError naming the
-    argument for shift / scale / center without a last dimension of 2.
+    argument for shift / scale / center without a last dimension of 2,
+    TypeError naming it for a value that is not numbers (a str, ...).
     """
     tensors = [t for t in (shift, angle, scale, center) if isinstance(t, torch.Tensor)]
     if dtype is None:
@@ -107,11 +108,12 @@ def uv_transform(shift: TensorLike = (0.0, 0.0), angle: Union[float, torch.Tenso
     if device is None and tensors:
         device = tensors[0].device
 
-    def conv(x):
+    def conv(x, name, shape_doc):
         return x.to(dtype=dtype, device=device) if isinstance(x, torch.Tensor) else \
-            torch.as_tensor(x, dtype=dtype, device=device)
+            as_float(x, name, shape_doc, dtype, device)
 
-    shift, angle, scale, center = conv(shift), conv(angle), conv(scale), conv(center)
+    shift, angle = conv(shift, "shift", "[..., 2]"), conv(angle, "angle", "[...]")
+    scale, center = conv(scale, "scale", "[] or [..., 2]"), conv(center, "center", "[..., 2]")
     if shift.dim() < 1 or shift.shape[-1] != 2:
         raise ValueError(f"shift must have shape [..., 2], got {tuple(shift.shape)}")
     if center.dim() < 1 or center.shape[-1] != 2:

@@ -6,7 +6,7 @@ from typing import Optional, Union
 
 import torch
 
-from .common import (EPS, TensorLike, UVResult, as_param, azimuth, broadcast, check_derivs, check_tensor,
+from .common import (EPS, TensorLike, UVResult, as_float, as_param, azimuth, broadcast, check_derivs, check_tensor,
                      cube_tables, dot, finite_only, major_face, nan_where, pick, result, sphere_uv)
 
 
@@ -228,8 +228,9 @@ def box_uv(points: torch.Tensor, normals: torch.Tensor, *,
         the face the pixel is on (the face is piecewise constant).
 
     Differentiable w.r.t. points, center, size and the point derivatives.
-    Raises ValueError naming the argument for bad shapes or an unknown
-    layout, TypeError for non-floating tensors.
+    Raises ValueError naming the argument for bad shapes, an unknown layout
+    or a size that is not positive, TypeError for non-floating tensors or
+    non-numeric parameters.
     """
     points = check_tensor(points, "points", 3)
     normals = check_tensor(normals, "normals", 3)
@@ -237,8 +238,14 @@ def box_uv(points: torch.Tensor, normals: torch.Tensor, *,
     if layout not in ("shared", "atlas"):
         raise ValueError(f"layout must be 'shared' or 'atlas', got {layout!r}")
     if not isinstance(size, torch.Tensor):
-        size = torch.as_tensor(size, dtype=points.dtype, device=points.device)
+        size = as_float(size, "size", "[...] (a number or one per point)", points.dtype, points.device)
+    elif not size.is_floating_point():
+        size = size.to(points.dtype)
     broadcast(points.shape[:-1], size.shape, "size", "points' batch shape")
+    # The scale is 2 / size: 0 gave inf / NaN uv, a negative size a mirrored box.
+    if size.numel() and not bool((size.detach() > 0).all()):
+        bad = size.detach()[~(size.detach() > 0)].reshape(-1)[0].item()
+        raise ValueError(f"size must be positive (the box's edge length), got {bad}")
     dps = check_derivs(points_dx, points_dy, "points", 3, points)
     try:
         shape = torch.broadcast_shapes(points.shape, normals.shape, center.shape)

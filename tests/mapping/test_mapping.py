@@ -529,3 +529,32 @@ def test_cylindrical_ref_parallel_to_axis_raises():
     # a small but clear angle still works
     uv = M.cylindrical_uv(torch.tensor([[1.0, 0.0, 0.0]], dtype=F64), (0, 0, 0), (0.0, 0.0, 1.0), ref=(1e-2, 0, 1))
     assert uv[0, 0].item() == pytest.approx(0.5, abs=1e-12)
+
+
+def test_non_numeric_parameters_name_the_argument():
+    # torch.as_tensor's own message was "new(): invalid data type 'str'", naming nothing.
+    p = torch.zeros(4, 3)
+    cases = [
+        (lambda: M.planar_uv(p, (0, 0, 0), "abc", (0, 1.0, 0)), r"axis_u must be a tensor or numbers of shape "
+                                                                  r"\[\.\.\., 3\], got str 'abc'"),
+        (lambda: M.spherical_uv(p, "origin"), r"center must be a tensor or numbers of shape \[\.\.\., 3\], got str"),
+        (lambda: M.cylindrical_uv(p, (0, 0, 0), (0, 0, 1.0), ref=[1.0, "x", 0]), r"ref must be a tensor or numbers"),
+        (lambda: M.box_uv(p, p, size="2"), r"size must be a tensor or numbers of shape \[\.\.\.\].*got str '2'"),
+        (lambda: M.uv_transform(angle="1"), r"angle must be a tensor or numbers of shape \[\.\.\.\], got str '1'"),
+        (lambda: M.uv_transform(shift="ab"), r"shift must be a tensor or numbers of shape \[\.\.\., 2\], got str"),
+        (lambda: M.uv_transform(scale=None), r"scale must be a tensor or numbers .*got NoneType None"),
+        (lambda: M.uv_transform(center={"u": 0.5}), r"center must be a tensor or numbers of shape \[\.\.\., 2\]"),
+    ]
+    for fn, match in cases:
+        with pytest.raises(TypeError, match=match):
+            fn()
+
+
+def test_box_uv_size_must_be_positive():
+    # 2 / size: size 0 gave inf / NaN uv, a negative size a mirrored box.
+    p = torch.rand(3, 3, generator=_gen(42), dtype=F64)
+    for size in (0.0, -1.0, float("nan"), torch.tensor([1.0, 0.0, 2.0], dtype=F64)):
+        with pytest.raises(ValueError, match=r"size must be positive \(the box's edge length\), got (0\.0|-1\.0|nan)"):
+            M.box_uv(p, p, size=size)
+    # an int tensor size is a float size
+    torch.testing.assert_close(M.box_uv(p, p, size=torch.tensor(2)), M.box_uv(p, p, size=2.0), rtol=0, atol=0)
