@@ -136,3 +136,10 @@ def test_no_covered_pixel_gives_zero_gradients(spot, filter):
         g = getattr(model, name).grad
         assert g is not None, name
         assert torch.equal(g, torch.zeros_like(g)), name
+
+
+def test_resolution_that_cannot_fit_names_resolution(spot):
+    # 30000^2 asked the allocator for tens of GB; the rasterizer's limit (16 GiB) names the resolution first.
+    model = difftex.TexturedMesh(spot, torch.rand(3, 8, 8))
+    with pytest.raises(ValueError, match=r"resolution 30000x30000 with batch 2 needs at least 93\.9 GiB"):
+        model(_mvp(2), (30000, 30000))
