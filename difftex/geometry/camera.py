@@ -7,7 +7,9 @@ and NDC z runs from -1 at the near plane to +1 at the far plane (smaller is
 nearer). :func:`transform` applies a matrix to [..., 3] points.
 
 Every function accepts Python floats or tensors (float32 / float64), keeps
-the dtype and device of its tensor inputs (float32 otherwise) and is
+the dtype and device of its float tensor inputs (float64 if any is, else
+float32; with none, ``torch.get_default_dtype()`` when that is float32 or
+float64, else float32) and is
 differentiable with respect to tensor arguments.
 """
 
@@ -28,10 +30,14 @@ def _common(*args: object, dtype: torch.dtype | None, device: torch.device | str
     """dtype / device from the tensor arguments unless given explicitly."""
     tensors = [a for a in args if isinstance(a, Tensor)]
     if dtype is None:
-        dtype = torch.float32
-        for t in tensors:
-            if t.dtype == torch.float64:
-                dtype = torch.float64
+        floats = [t.dtype for t in tensors if t.is_floating_point()]
+        if floats:
+            dtype = torch.float64 if torch.float64 in floats else torch.float32
+        else:
+            # No float tensor to follow: torch's default dtype, as torch.tensor(1.0) and
+            # difftex.mapping.uv_transform do (float32 where the default is a half type).
+            default = torch.get_default_dtype()
+            dtype = default if default in (torch.float32, torch.float64) else torch.float32
     if dtype not in (torch.float32, torch.float64):
         raise TypeError(f"dtype must be float32 or float64, got {dtype}")
     if device is None:

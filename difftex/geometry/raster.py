@@ -46,6 +46,15 @@ _MAX_BLOCK = 1 << 16
 _MIN_BIN = 64
 _KEY_EMPTY = torch.iinfo(torch.int64).max
 
+#: Most bytes :func:`rasterize` may allocate for its per-pixel buffers (all
+#: views of the batch together) before it refuses with a ValueError naming the
+#: resolution: 16 GiB by default. The estimate counts what every call holds
+#: at once (the int64 z-buffer and triangle ids, bary / depth / bary_dx /
+#: bary_dy), so a resolution under 2**31 pixels that cannot fit fails at once
+#: with a message, not deep in the allocator. Raise it (``difftex.geometry.
+#: raster.MAX_BYTES = ...``) on a machine with more memory.
+MAX_BYTES = 16 << 30
+
 
 @dataclass(frozen=True)
 class Fragments:
@@ -132,6 +141,18 @@ def _check_resolution(resolution: Sequence[int]) -> tuple[int, int]:
 
 # --------------------------------------------------------------------------
 # shared maths
+
+
+def _check_memory(B: int, H: int, W: int, dtype: torch.dtype) -> None:
+    """ValueError naming resolution and batch where the per-pixel buffers exceed ``MAX_BYTES``."""
+    # z-buffer + tri_id (int64 each), then bary, depth, bary_dx, bary_dy: 10 floats.
+    per_pixel = 2 * 8 + 10 * torch.empty((), dtype=dtype).element_size()
+    need = B * H * W * per_pixel
+    if need > MAX_BYTES:
+        raise ValueError(f"resolution {H}x{W} with batch {B} needs at least {need / 2**30:.1f} GiB for the "
+                         f"rasterizer's per-pixel buffers ({per_pixel} bytes a pixel), over the limit "
+                         f"difftex.geometry.raster.MAX_BYTES = {MAX_BYTES / 2**30:.1f} GiB: render fewer views "
+                         f"at a time or smaller tiles, or raise the limit")
 
 
 def _pow2_scale(v: Tensor) -> Tensor:
@@ -530,12 +551,15 @@ def rasterize(
     ``bary``, ``depth``, ``bary_dx`` and ``bary_dy`` are differentiable with
     respect to ``pos`` (the perspective-correct formula); which triangle is
     visible is not. Raises TypeError on bad dtypes, ValueError naming the
-    argument on bad shapes, out-of-range faces or non-finite positions.
+    argument on bad shapes, out-of-range faces or non-finite positions, and
+    ValueError naming ``resolution`` and the batch where the per-pixel
+    buffers would exceed :data:`MAX_BYTES` (16 GiB by default).
     """
     pos = _check_pos(pos)
     faces = check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
     H, W = _check_resolution(resolution)
     B = pos.shape[0]
+    _check_memory(B, H, W, pos.dtype)
     with torch.no_grad():
         tri_id = _visibility(pos.detach(), faces, H, W, cull_backfaces)
 

@@ -25,9 +25,17 @@ the distance to it is a cone point without a linear derivative, and its
 derivative (like phi's) is taken as 0 there, so uv_dx / uv_dy are 0 there
 except the cylinder's height term; just off it (r >= EPS) they are exact and grow
 like 1 / r, as the true footprint does.  Denominators of the
-Jacobians are clamped at ``EPS**2`` and the square root / atan2 are guarded
-with the double-``where`` trick, so outputs and gradients stay finite
-(large near the axis, where the true derivative diverges) and never NaN.
+Jacobians are clamped at ``EPS**2`` and the radius (``hypot``, so no square
+overflows float32 past 1.8e19) / atan2 are guarded with the double-``where``
+trick, so outputs and gradients stay finite (large near the axis, where the
+true derivative diverges) and never NaN.
+
+Non-finite input.  A NaN / inf point (or derivative) of the polar maps
+(spherical, cylindrical, normal, equirectangular) gives NaN in its own
+output element (derivative element) only, and a loss that leaves those
+elements out gets finite gradients for the parameters the points share
+(a centre, an axis): the bad elements are replaced by harmless values
+before any arithmetic, so backward never forms ``0 * NaN``.
 """
 from .common import CUBE_FACES, EPS
 from .matrix import texture_matrix, uv_transform

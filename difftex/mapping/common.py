@@ -45,10 +45,22 @@ def check_tensor(x, name: str, k: int) -> torch.Tensor:
     return x
 
 
+def as_float(x, name: str, shape_doc: str, dtype: torch.dtype, device) -> torch.Tensor:
+    """A number or (nested) sequence of numbers as a tensor; TypeError naming ``name`` for anything else."""
+    # torch.as_tensor reads a str as a sequence type it cannot convert ("new(): invalid data type 'str'").
+    bad = isinstance(x, (str, bytes))
+    if not bad:
+        try:
+            return torch.as_tensor(x, dtype=dtype, device=device)
+        except (TypeError, ValueError, RuntimeError):
+            bad = True
+    raise TypeError(f"{name} must be a tensor or numbers of shape {shape_doc}, got {type(x).__name__} {x!r}")
+
+
 def as_param(x, name: str, k: int, like: torch.Tensor) -> torch.Tensor:
     """A parameter given as a tensor or a plain sequence, on ``like``'s device, broadcastable with ``like``."""
     if not isinstance(x, torch.Tensor):
-        x = torch.as_tensor(x, dtype=like.dtype, device=like.device)
+        x = as_float(x, name, f"[..., {k}]", like.dtype, like.device)
     x = check_tensor(x, name, k)
     broadcast(like.shape, x.shape, name, "points")
     return x
@@ -91,47 +103,98 @@ def dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 # --------------------------------------------------------------------------
 
 
+def finite_only(vals, derivs):
+    """Non-finite inputs kept out of the arithmetic: ``(vals, derivs, ok, oks_d)``.
+
+    ``vals`` is a list of same-shaped [...] components of the points,
+    ``derivs`` a list (one per derivative, e.g. d/dx and d/dy) of such lists.
+    Where a component of a point is NaN / inf, ``ok`` is False and the
+    point's values and derivatives are replaced by 0; where a component of
+    derivative k is, ``oks_d[k]`` is False and that derivative is. The
+    replaced points compute harmless finite numbers, so backward never forms
+    0 * NaN: a product's backward multiplies the incoming gradient (0 for a
+    masked-out element) by the other factor, and 0 * NaN would put NaN into
+    every parameter the points share (a centre, an axis). The callers put NaN
+    back into those elements' outputs (:func:`nan_where`).
+    """
+    ok = torch.ones((), dtype=torch.bool, device=vals[0].device)
+    for v in vals:
+        ok = ok & torch.isfinite(v)
+    oks_d = []
+    for ds in derivs:
+        ok_d = ok
+        for d in ds:
+            ok_d = ok_d & torch.isfinite(d)
+        oks_d.append(ok_d)
+    vals = [torch.where(ok, v, 0.0) for v in vals]
+    derivs = [[torch.where(ok_d, d, 0.0) for d in ds] for ds, ok_d in zip(derivs, oks_d)]
+    return vals, derivs, ok, oks_d
+
+
+def nan_where(x: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
+    """x with NaN where ``ok`` [...] is False (x [...] or [..., k]); no gradient flows to those elements."""
+    if x.dim() > ok.dim():
+        ok = ok[..., None]
+    return torch.where(ok, x, float("nan"))
+
+
+def _radius(a, b):
+    """(hypot(a, b) with a finite gradient at 0, hypot clamped at EPS, ok = hypot > EPS).
+
+    hypot, not sqrt(a^2 + b^2): the squares overflow float32 beyond ~1.8e19.
+    """
+    ok = torch.hypot(a.detach(), b.detach()) > EPS
+    # Double where: hypot's backward at (0, 0) is 0/0; feed it a harmless point where the result is discarded.
+    r = torch.where(ok, torch.hypot(torch.where(ok, a, 1.0), torch.where(ok, b, 0.0)), 0.0)
+    return r, r.clamp_min(EPS), ok
+
+
+def _azimuth(a, b, das, dbs):
+    rho, rho_c, ok = _radius(a, b)
+    # Same guard for atan2's backward at (0, 0).
+    phi = torch.where(ok, torch.atan2(torch.where(ok, b, 0.0), torch.where(ok, a, 1.0)), 0.0)
+    # (a db - b da) / rho^2, with the quotients taken first so no square overflows.
+    an, bn = a / rho_c, b / rho_c
+    dphis = [(an * db - bn * da) / rho_c for da, db in zip(das, dbs)]
+    return phi, dphis, rho, rho_c, an, bn
+
+
 def azimuth(a, b, das, dbs):
-    """phi = atan2(b, a) and its directional derivatives, NaN-free on the axis."""
-    r2 = a * a + b * b
-    ok = r2 > EPS * EPS
-    # Double where: atan2's backward at (0, 0) is 0/0, so feed it a harmless
-    # point where the result is discarded anyway.
-    a_s = torch.where(ok, a, torch.ones_like(a))
-    b_s = torch.where(ok, b, torch.zeros_like(b))
-    phi = torch.where(ok, torch.atan2(b_s, a_s), torch.zeros_like(a))
-    den = r2.clamp_min(EPS * EPS)
-    dphis = [(a * db - b * da) / den for da, db in zip(das, dbs)]
-    return phi, dphis
+    """phi = atan2(b, a) and its directional derivatives, NaN-free on the axis.
+
+    A non-finite a or b (or derivative) gives NaN in that element only, and
+    no NaN in the gradients of the other elements' inputs.
+    """
+    (a, b), ds, ok, oks_d = finite_only([a, b], [list(d) for d in zip(das, dbs)])
+    phi, dphis, *_ = _azimuth(a, b, [d[0] for d in ds], [d[1] for d in ds])
+    return nan_where(phi, ok), [nan_where(d, o) for d, o in zip(dphis, oks_d)]
 
 
-def polar(a, b, c, das, dbs, dcs):
-    """theta = angle from the +c axis, atan2(sqrt(a^2 + b^2), c), and its derivatives."""
-    r2 = a * a + b * b
-    ok = r2 > EPS * EPS
-    # sqrt has an infinite derivative at 0: same double-where guard.
-    rho = torch.where(ok, torch.sqrt(torch.where(ok, r2, torch.ones_like(r2))), torch.zeros_like(r2))
-    big2 = r2 + c * c
-    ok3 = big2 > EPS * EPS
-    rho_s = torch.where(ok3, rho, torch.ones_like(rho))
-    c_s = torch.where(ok3, c, torch.zeros_like(c))
-    theta = torch.where(ok3, torch.atan2(rho_s, c_s), torch.full_like(c, math.pi / 2))
-    rho_den = rho.clamp_min(EPS)
-    big_den = big2.clamp_min(EPS * EPS)
+def _polar(a, b, c, rho, rho_c, an, bn, das, dbs, dcs):
+    big, big_c, ok3 = _radius(rho, c)
+    theta = torch.where(ok3, torch.atan2(torch.where(ok3, rho, 1.0), torch.where(ok3, c, 0.0)), math.pi / 2)
+    cn, rn = c / big_c, rho / big_c
     dthetas = []
     for da, db, dc in zip(das, dbs, dcs):
-        drho = (a * da + b * db) / rho_den
-        dthetas.append((c * drho - rho * dc) / big_den)
+        drho = an * da + bn * db
+        # (c drho - rho dc) / (rho^2 + c^2), quotients first.
+        dthetas.append((cn * drho - rn * dc) / big_c)
     return theta, dthetas
 
 
 def sphere_uv(a, b, c, das, dbs, dcs):
-    """u = (atan2(b, a) + pi) / 2pi, v = angle from +c / pi, with derivatives."""
-    phi, dphis = azimuth(a, b, das, dbs)
-    theta, dthetas = polar(a, b, c, das, dbs, dcs)
+    """u = (atan2(b, a) + pi) / 2pi, v = angle from +c / pi, with derivatives.
+
+    A non-finite input gives NaN in its own uv (and derivative) element only.
+    """
+    (a, b, c), ds, ok, oks_d = finite_only([a, b, c], [list(d) for d in zip(das, dbs, dcs)])
+    das, dbs, dcs = [d[0] for d in ds], [d[1] for d in ds], [d[2] for d in ds]
+    phi, dphis, rho, rho_c, an, bn = _azimuth(a, b, das, dbs)
+    theta, dthetas = _polar(a, b, c, rho, rho_c, an, bn, das, dbs, dcs)
     uv = torch.stack([(phi + math.pi) / (2 * math.pi), theta / math.pi], dim=-1)
-    duv = [torch.stack([dp / (2 * math.pi), dt / math.pi], dim=-1) for dp, dt in zip(dphis, dthetas)]
-    return uv, duv
+    duv = [nan_where(torch.stack([dp / (2 * math.pi), dt / math.pi], dim=-1), o)
+           for dp, dt, o in zip(dphis, dthetas, oks_d)]
+    return nan_where(uv, ok), duv
 
 
 # --------------------------------------------------------------------------

@@ -1,11 +1,12 @@
 """The texture matrix: an affine or projective map of uv (with its derivatives), and a builder for it."""
 from __future__ import annotations
 
+import math
 from typing import Optional, Union
 
 import torch
 
-from .common import TensorLike, UVResult, broadcast, check_derivs, check_tensor, result
+from .common import TensorLike, UVResult, as_float, broadcast, check_derivs, check_tensor, result
 
 
 def texture_matrix(uv: torch.Tensor, matrix: torch.Tensor, *,
@@ -28,7 +29,9 @@ def texture_matrix(uv: torch.Tensor, matrix: torch.Tensor, *,
         uv [..., 2], or ``(uv, uv_dx, uv_dy)`` transformed by the Jacobian
         (the linear part for affine matrices; the projective quotient rule
         otherwise).  ``w = 0`` (points at infinity of a projective matrix)
-        gives inf; affine matrices never do.
+        gives +-inf in both coordinates (the sign of x, resp. y; +inf where
+        that is 0) and +inf derivatives, with zero gradients there; affine
+        matrices never do.
 
     Differentiable w.r.t. uv, matrix and the derivatives.  Raises ValueError
     naming the argument for shapes other than [..., 2] / [..., 3, 3],
@@ -47,14 +50,23 @@ def texture_matrix(uv: torch.Tensor, matrix: torch.Tensor, *,
     x = m[..., 0, 0] * u + m[..., 0, 1] * v + m[..., 0, 2]
     y = m[..., 1, 0] * u + m[..., 1, 1] * v + m[..., 1, 2]
     w = m[..., 2, 0] * u + m[..., 2, 1] * v + m[..., 2, 2]
-    out = torch.stack([x / w, y / w], dim=-1)
+    # w = 0 is a point at infinity: every coordinate is infinite there (0 / 0
+    # would make the one with x = 0 NaN), signed like x (+inf for x = 0), and
+    # its derivatives +inf (an unbounded footprint). The double where keeps the
+    # division's backward off w = 0: the result is constant there, gradient 0.
+    at_inf = w == 0
+    w = torch.where(at_inf, 1.0, w)
+
+    out = torch.stack([torch.where(at_inf, torch.where(x < 0, -math.inf, math.inf), x / w),
+                       torch.where(at_inf, torch.where(y < 0, -math.inf, math.inf), y / w)], dim=-1)
     douts = []
     for d in duvs:
         du, dv = d[..., 0], d[..., 1]
         dx = m[..., 0, 0] * du + m[..., 0, 1] * dv
         dy = m[..., 1, 0] * du + m[..., 1, 1] * dv
         dw = m[..., 2, 0] * du + m[..., 2, 1] * dv
-        douts.append(torch.stack([(dx * w - x * dw) / (w * w), (dy * w - y * dw) / (w * w)], dim=-1))
+        jac = torch.stack([(dx * w - x * dw) / (w * w), (dy * w - y * dw) / (w * w)], dim=-1)
+        douts.append(torch.where(at_inf[..., None], math.inf, jac))
     return result(out, douts)
 
 
@@ -82,7 +94,8 @@ def uv_transform(shift: TensorLike = (0.0, 0.0), angle: Union[float, torch.Tenso
         (``torch.linalg.inv``) undoes it.
 
     Differentiable w.r.t. every tensor argument.  Raises ValueError naming the
-    argument for shift / scale / center without a last dimension of 2.
+    argument for shift / scale / center without a last dimension of 2,
+    TypeError naming it for a value that is not numbers (a str, ...).
     """
     tensors = [t for t in (shift, angle, scale, center) if isinstance(t, torch.Tensor)]
     if dtype is None:
@@ -95,11 +108,12 @@ def uv_transform(shift: TensorLike = (0.0, 0.0), angle: Union[float, torch.Tenso
     if device is None and tensors:
         device = tensors[0].device
 
-    def conv(x):
+    def conv(x, name, shape_doc):
         return x.to(dtype=dtype, device=device) if isinstance(x, torch.Tensor) else \
-            torch.as_tensor(x, dtype=dtype, device=device)
+            as_float(x, name, shape_doc, dtype, device)
 
-    shift, angle, scale, center = conv(shift), conv(angle), conv(scale), conv(center)
+    shift, angle = conv(shift, "shift", "[..., 2]"), conv(angle, "angle", "[...]")
+    scale, center = conv(scale, "scale", "[] or [..., 2]"), conv(center, "center", "[..., 2]")
     if shift.dim() < 1 or shift.shape[-1] != 2:
         raise ValueError(f"shift must have shape [..., 2], got {tuple(shift.shape)}")
     if center.dim() < 1 or center.shape[-1] != 2:

@@ -6,8 +6,8 @@ from typing import Optional, Union
 
 import torch
 
-from .common import (EPS, TensorLike, UVResult, as_param, azimuth, broadcast, check_derivs, check_tensor,
-                     cube_tables, dot, major_face, pick, result, sphere_uv)
+from .common import (EPS, TensorLike, UVResult, as_float, as_param, azimuth, broadcast, check_derivs, check_tensor,
+                     cube_tables, dot, finite_only, major_face, nan_where, pick, result, sphere_uv)
 
 
 def planar_uv(points: torch.Tensor, origin: TensorLike, axis_u: TensorLike, axis_v: TensorLike, *,
@@ -44,16 +44,34 @@ def planar_uv(points: torch.Tensor, origin: TensorLike, axis_u: TensorLike, axis
     return result(uv, duv)
 
 
+def _first(x: torch.Tensor, where: torch.Tensor) -> list[float]:
+    """The first [3] vector of x (broadcast against ``where`` [..., 1]) where ``where`` holds, for messages."""
+    shape = torch.broadcast_shapes(x.shape, where.shape[:-1] + (3,))
+    i = int(where.expand(*shape[:-1], 1).reshape(-1).nonzero()[0])
+    return [round(float(c), 6) for c in x.detach().expand(shape).reshape(-1, 3)[i]]
+
+
 def _cylinder_frame(axis: torch.Tensor, ref: Optional[torch.Tensor]):
     """Unit vectors (e1, e2) spanning the plane orthogonal to ``axis``, phi = 0 along e1."""
     n = axis / torch.linalg.vector_norm(axis, dim=-1, keepdim=True).clamp_min(EPS)
+    given = ref is not None
     if ref is None:
         ex = torch.tensor([1.0, 0.0, 0.0], dtype=axis.dtype, device=axis.device)
         ey = torch.tensor([0.0, 1.0, 0.0], dtype=axis.dtype, device=axis.device)
         # x unless the axis is close to x, where its projection would degenerate.
         ref = torch.where(n[..., :1].abs() > 0.9, ey, ex)
     e1 = ref - dot(ref, n)[..., None] * n
-    e1 = e1 / torch.linalg.vector_norm(e1, dim=-1, keepdim=True).clamp_min(EPS)
+    e1_len = torch.linalg.vector_norm(e1, dim=-1, keepdim=True)
+    if given:
+        # Along the axis, ref has no direction in the plane of phi: u would be
+        # 0.5 everywhere (or follow rounding noise), never what was asked.
+        tol = torch.finfo(ref.dtype).eps ** 0.5
+        flat = (e1_len <= tol * torch.linalg.vector_norm(ref, dim=-1, keepdim=True)).detach()
+        if bool(flat.any()):
+            raise ValueError(f"ref: must not be parallel to axis (its part orthogonal to the axis must be at "
+                             f"least {tol:.1e} of its length); got ref {_first(ref, flat)} with axis "
+                             f"{_first(axis, flat)}")
+    e1 = e1 / e1_len.clamp_min(EPS)
     n, e1 = torch.broadcast_tensors(n, e1)
     e2 = torch.linalg.cross(n, e1, dim=-1)
     return e1, e2
@@ -87,8 +105,9 @@ def cylindrical_uv(points: torch.Tensor, center: TensorLike, axis: TensorLike, *
 
     Differentiable w.r.t. points, center, axis and the derivatives; outputs
     and gradients are finite on the axis.  Raises ValueError naming the
-    argument for a last dimension other than 3, TypeError for non-floating
-    tensors.
+    argument for a last dimension other than 3 or a ``ref`` (nearly)
+    parallel to ``axis`` (its part orthogonal to the axis under sqrt(eps) of
+    its length: no phi = 0 direction), TypeError for non-floating tensors.
     """
     points = check_tensor(points, "points", 3)
     center = as_param(center, "center", 3, points)
@@ -97,15 +116,20 @@ def cylindrical_uv(points: torch.Tensor, center: TensorLike, axis: TensorLike, *
         ref = as_param(ref, "ref", 3, points)
     dps = check_derivs(points_dx, points_dy, "points", 3, points)
     e1, e2 = _cylinder_frame(axis, ref)
+    # A non-finite point must not reach the dot products: their backward
+    # multiplies it by the (zero) incoming gradient, and 0 * NaN would reach
+    # the shared axis / ref / center.
     d = points - center
+    (*d,), dps, ok, oks_d = finite_only(list(d.unbind(-1)), [list(dp.unbind(-1)) for dp in dps])
+    d, dps = torch.stack(d, -1), [torch.stack(dp, -1) for dp in dps]
     inv_len2 = 1.0 / dot(axis, axis).clamp_min(EPS * EPS)
     a, b = dot(d, e1), dot(d, e2)
     phi, dphis = azimuth(a, b, [dot(dp, e1) for dp in dps], [dot(dp, e2) for dp in dps])
     h = dot(d, axis) * inv_len2
     uv = torch.stack([(phi + math.pi) / (2 * math.pi), 0.5 * (1.0 - h)], dim=-1)
-    duv = [torch.stack([dphi / (2 * math.pi), -0.5 * dot(dp, axis) * inv_len2], dim=-1)
-           for dphi, dp in zip(dphis, dps)]
-    return result(uv, duv)
+    duv = [nan_where(torch.stack([dphi / (2 * math.pi), -0.5 * dot(dp, axis) * inv_len2], dim=-1), o)
+           for dphi, dp, o in zip(dphis, dps, oks_d)]
+    return result(nan_where(uv, ok), duv)
 
 
 def spherical_uv(points: torch.Tensor, center: TensorLike = (0.0, 0.0, 0.0), *,
@@ -204,8 +228,9 @@ def box_uv(points: torch.Tensor, normals: torch.Tensor, *,
         the face the pixel is on (the face is piecewise constant).
 
     Differentiable w.r.t. points, center, size and the point derivatives.
-    Raises ValueError naming the argument for bad shapes or an unknown
-    layout, TypeError for non-floating tensors.
+    Raises ValueError naming the argument for bad shapes, an unknown layout
+    or a size that is not positive, TypeError for non-floating tensors or
+    non-numeric parameters.
     """
     points = check_tensor(points, "points", 3)
     normals = check_tensor(normals, "normals", 3)
@@ -213,8 +238,14 @@ def box_uv(points: torch.Tensor, normals: torch.Tensor, *,
     if layout not in ("shared", "atlas"):
         raise ValueError(f"layout must be 'shared' or 'atlas', got {layout!r}")
     if not isinstance(size, torch.Tensor):
-        size = torch.as_tensor(size, dtype=points.dtype, device=points.device)
+        size = as_float(size, "size", "[...] (a number or one per point)", points.dtype, points.device)
+    elif not size.is_floating_point():
+        size = size.to(points.dtype)
     broadcast(points.shape[:-1], size.shape, "size", "points' batch shape")
+    # The scale is 2 / size: 0 gave inf / NaN uv, a negative size a mirrored box.
+    if size.numel() and not bool((size.detach() > 0).all()):
+        bad = size.detach()[~(size.detach() > 0)].reshape(-1)[0].item()
+        raise ValueError(f"size must be positive (the box's edge length), got {bad}")
     dps = check_derivs(points_dx, points_dy, "points", 3, points)
     try:
         shape = torch.broadcast_shapes(points.shape, normals.shape, center.shape)

@@ -1,16 +1,18 @@
 """``TexturedMesh``: the whole pipeline as one ``nn.Module`` for training loops."""
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import torch
 from torch import Tensor, nn
 
-from .._checks import check_float
+from .._checks import check_float, check_same, describe
 from ..geometry import camera
 from ..geometry.interpolate import interpolate
 from ..geometry.mesh import Mesh
 from ..geometry.raster import Fragments, rasterize
+from ..texture.options import check_number
 from ..texture.sample import sample
 from ..texture.wrap import Wrap
 
@@ -31,7 +33,10 @@ class TexturedMesh(nn.Module):
             schedule it, e.g. coarse to fine).
         learn_texture: register the texture as an ``nn.Parameter``.
         learn_uv: register the uv [T, 2] as an ``nn.Parameter`` too.
-        background: value of pixels that no triangle covers.
+        background: value of pixels that no triangle covers (a finite number).
+
+    Raises TypeError naming the argument for a texture that is not float32 /
+    float64 or a background that is not a number, ValueError for shapes.
 
     ``forward(mvp, resolution)`` renders images; gradients reach the texture,
     the uv (when learned) and ``mvp`` (through the barycentrics).
@@ -44,6 +49,10 @@ class TexturedMesh(nn.Module):
         if not isinstance(mesh, Mesh):
             raise TypeError(f"mesh: expected a difftex.Mesh, got {type(mesh).__name__}")
         check_float("texture", texture, (3, 4), shape_doc="[C, H, W] or [1, C, H, W]")
+        if texture.dtype not in (torch.float32, torch.float64):
+            # The mesh is rasterized in the texture's dtype, which must be one the rasterizer takes.
+            raise TypeError(f"texture: expected float32 or float64 [C, H, W] or [1, C, H, W], got {describe(texture)}")
+        background = check_number("background", background, -math.inf)
         if texture.dim() == 3:
             texture = texture.unsqueeze(0)
         if texture.shape[0] != 1:
@@ -104,14 +113,27 @@ class TexturedMesh(nn.Module):
             frags = self.rasterize(mvp, resolution)
         if uv is None:
             uv = self.uv
-        elif not isinstance(uv, torch.Tensor):
-            raise TypeError(f"uv: expected a float tensor {tuple(self.uv.shape)} like the mesh's uv, "
-                            f"got {type(uv).__name__}")
-        elif uv.shape != self.uv.shape:
-            raise ValueError(f"uv: expected shape {tuple(self.uv.shape)} like the mesh's uv, got {tuple(uv.shape)}")
+        else:
+            check_float("uv", uv, 2, last=2, shape_doc=f"{tuple(self.uv.shape)} like the mesh's uv")
+            if uv.shape != self.uv.shape:
+                raise ValueError(f"uv: expected shape {tuple(self.uv.shape)} like the mesh's uv, got {describe(uv)}")
+            check_same("uv", uv, "the texture", self.texture)
+        mask = frags.mask.unsqueeze(1)
+        if not bool(mask.any()):
+            # Nothing to read: every pixel is background. The learned tensors
+            # (and the geometry, through the barycentrics) stay in the graph with zero gradients, as the filters that read
+            # (and pass zero gradients back for) the uncovered pixels give
+            # them; sampling here would leave the texture out of the graph
+            # where a filter's backward reports "no texel read" as None (the
+            # native mip taps do).
+            B, _, H, W = mask.shape
+            C = self.texture.shape[1]
+            image = self.texture.new_full((B, C, H, W), self.background)
+            for t in (self.texture, uv, frags.bary):
+                image = image + t.reshape(-1)[:0].sum()  # 0, in the graph
+            return image, mask.to(image.dtype)
         uv, uv_dx, uv_dy = interpolate(uv, self.faces, frags, derivatives=True, attr_faces=self.uv_faces)
         image = sample(self.texture, uv, filter=self.filter, wrap=self.wrap,
                        uv_dx=uv_dx, uv_dy=uv_dy, max_aniso=self.max_aniso, lod_bias=self.lod_bias)
-        mask = frags.mask.unsqueeze(1)
         image = torch.where(mask, image, image.new_tensor(self.background))
         return image, mask.to(image.dtype)

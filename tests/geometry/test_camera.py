@@ -124,3 +124,25 @@ def test_bad_input_errors_name_the_argument():
         camera.transform(torch.rand(2, 5, 3), torch.rand(3, 4, 4))
     with pytest.raises(TypeError, match="dtype"):
         camera.perspective(1.0, dtype=torch.int64)
+
+
+@pytest.mark.parametrize("default", [torch.float64, torch.float32])
+def test_no_tensor_arguments_follow_the_default_dtype(default):
+    # Like torch.tensor(1.0) and mapping.uv_transform: with no float tensor to follow, the default dtype.
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(default)
+    try:
+        mats = [camera.look_at((1.0, 2.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+                camera.perspective(60.0, 1.5, 0.1, 10.0, degrees=True),
+                camera.orthographic(-1.0, 1.0, -1.0, 1.0, 0.1, 10.0),
+                camera.look_at(torch.tensor([1, 2, 3]), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))]  # int tensor
+        assert [m.dtype for m in mats] == [default] * 4
+        # float tensors still decide, and an explicit dtype wins
+        assert camera.perspective(torch.tensor(1.0, dtype=torch.float32), 1.0, 0.1, 10.0).dtype == torch.float32
+        assert camera.orthographic(-1.0, 1.0, -1.0, 1.0, 0.1, 10.0, dtype=torch.float32).dtype == torch.float32
+        # same values as the float64 build, to the default's precision
+        want = camera.perspective(60.0, 1.5, 0.1, 10.0, degrees=True, dtype=torch.float64)
+        torch.testing.assert_close(mats[1].double(), want, rtol=1e-6, atol=1e-6)
+    finally:
+        torch.set_default_dtype(previous)
+    assert torch.get_default_dtype() == previous

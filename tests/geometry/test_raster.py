@@ -503,3 +503,38 @@ def test_cuda_float32_watertight():
     pos = camera.transform(V, camera.perspective(40.0, 1.0, 0.5, 10.0, degrees=True, dtype=torch.float64) @ view)
     count = _coverage_count(pos.float().cuda(), F.cuda(), (96, 96))
     assert set(count.unique().tolist()) <= {0, 2}
+
+
+def _one_triangle(B=1, dtype=torch.float32):
+    pos = torch.tensor([[-0.5, -0.5, 0.0, 1.0], [0.5, -0.5, 0.0, 1.0], [0.0, 0.5, 0.0, 1.0]], dtype=dtype)
+    return pos.expand(B, 3, 4), torch.tensor([[0, 1, 2]])
+
+
+def test_memory_limit_names_resolution_and_batch(monkeypatch):
+    # Under a 1 MiB limit: 64 x 64 (56 bytes a float32 pixel: 224 KiB) renders, 256 x 256 (3.5 MiB) and a
+    # batch of 8 at 128 x 128 (7 MiB) raise before allocating anything; float64 pixels take 96 bytes.
+    import difftex.geometry.raster as R
+    monkeypatch.setattr(R, "MAX_BYTES", 1 << 20, raising=False)
+    pos, faces = _one_triangle()
+    assert rasterize(pos, faces, (64, 64)).mask.sum() > 0
+    with pytest.raises(ValueError, match=r"resolution 256x256 with batch 1 needs at least 0\.0 GiB .*\(56 bytes a "
+                                         r"pixel\), over the limit difftex\.geometry\.raster\.MAX_BYTES = 0\.0 GiB"):
+        rasterize(pos, faces, (256, 256))
+    with pytest.raises(ValueError, match=r"resolution 128x128 with batch 8 needs .*\(56 bytes a pixel\)"):
+        rasterize(*_one_triangle(8), (128, 128))
+    assert rasterize(pos, faces, (128, 128)).mask.sum() > 0  # 896 KiB in float32, 1.5 MiB in float64
+    with pytest.raises(ValueError, match=r"resolution 128x128 with batch 1 .*\(96 bytes a pixel\)"):
+        rasterize(*_one_triangle(1, torch.float64), (128, 128))
+
+
+@pytest.mark.parametrize("resolution,B,gib", [((40000, 40000), 1, 83.4), ((1, 2**31 - 1), 1, 112.0),
+                                              ((1024, 1024), 4096, 224.0)])
+def test_default_memory_limit_refuses_what_cannot_fit(resolution, B, gib):
+    # Under the 2**31-pixel guard but tens of GiB: these asked the allocator for 7-34 GB and failed
+    # there, without naming the resolution; the default limit is 16 GiB.
+    import difftex.geometry.raster as R
+    assert R.MAX_BYTES == 16 << 30
+    H, W = resolution
+    with pytest.raises(ValueError, match=rf"resolution {H}x{W} with batch {B} needs at least {gib:.1f} GiB .*"
+                                         r"MAX_BYTES = 16\.0 GiB"):
+        rasterize(*_one_triangle(B), resolution)

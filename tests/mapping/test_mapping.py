@@ -423,3 +423,138 @@ def test_derivatives_get_the_parameters_batch_shape():
     assert uv.shape == dx.shape == dy.shape == (2, 4, 2)
     torch.testing.assert_close(dx[1], dp[:, :2])
     torch.testing.assert_close(dy[0], -dp[:, :2])
+
+
+# ----------------------------------------------------------------- non-finite input and extremes
+
+
+def nonfinite_stays_in_its_element(fn, params, dtype=F64):
+    """Check ``fn(points, params, points_dx, points_dy) -> (uv, uv_dx, uv_dy)`` on 6 points where point 0
+    holds a NaN, point 1 an inf and point 3's dx a NaN: those elements (and only those) are NaN, and a loss
+    over the other elements gives the shared parameters the gradients of the same loss on the good points alone.
+
+    Shared by the envmap tests (tests/envmap/test_directions.py).
+    """
+    g = _gen(40)
+    p = torch.randn(6, 3, generator=g, dtype=dtype)
+    dx, dy = torch.randn(6, 3, generator=g, dtype=dtype), torch.randn(6, 3, generator=g, dtype=dtype)
+    p[0, 0], p[1, 2], dx[3, 1] = float("nan"), float("inf"), float("nan")
+    good, good_d = [2, 3, 4, 5], [2, 4, 5]
+
+    def loss(idx, idx_d):
+        for t in params:
+            t.grad = None
+        uv, uv_dx, uv_dy = fn(p[idx], params, dx[idx], dy[idx])
+        pos_d = [idx.index(i) for i in idx_d]
+        (uv.sum() + uv_dx[pos_d].sum() + uv_dy.sum()).backward()
+        return uv, uv_dx, [t.grad.clone() for t in params]
+
+    uv, uv_dx, uv_dy = fn(p, params, dx, dy)
+    assert torch.isnan(uv[:2]).all() and torch.isfinite(uv[2:]).all()
+    assert torch.isnan(uv_dx[[0, 1, 3]]).all() and torch.isfinite(uv_dx[good_d]).all()
+    assert torch.isnan(uv_dy[:2]).all() and torch.isfinite(uv_dy[2:]).all()
+    want_uv, want_dx, want_grads = loss(good, good_d)
+    got_uv, got_dx, got_grads = loss(list(range(6)), good_d)
+    torch.testing.assert_close(got_uv[good], want_uv, rtol=0, atol=0)
+    torch.testing.assert_close(got_dx[good_d], want_dx[[0, 2, 3]], rtol=0, atol=0)
+    for got, want in zip(got_grads, want_grads):
+        assert torch.isfinite(want).all()
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_nonfinite_point_stays_in_its_element_spherical():
+    c = torch.tensor([0.1, 0.2, -0.3], dtype=F64, requires_grad=True)
+    nonfinite_stays_in_its_element(lambda p, ps, dx, dy: M.spherical_uv(p, ps[0], points_dx=dx, points_dy=dy), [c])
+
+
+def test_nonfinite_point_stays_in_its_element_cylindrical():
+    c = torch.tensor([0.1, 0.2, -0.3], dtype=F64, requires_grad=True)
+    axis = torch.tensor([0.2, 0.1, 1.5], dtype=F64, requires_grad=True)
+    ref = torch.tensor([1.0, 0.3, 0.1], dtype=F64, requires_grad=True)
+    nonfinite_stays_in_its_element(
+        lambda p, ps, dx, dy: M.cylindrical_uv(p, ps[0], ps[1], ref=ps[2], points_dx=dx, points_dy=dy),
+        [c, axis, ref])
+
+
+def test_nonfinite_point_stays_in_its_element_normal():
+    # A shared offset of the normals stands in for any parameter the normals come from.
+    t = torch.tensor([0.1, 0.2, -0.3], dtype=F64, requires_grad=True)
+    nonfinite_stays_in_its_element(lambda n, ps, dx, dy: M.normal_uv(n + ps[0], normals_dx=dx, normals_dy=dy), [t])
+
+
+def test_spherical_does_not_overflow_the_squared_radius():
+    # float32 squares overflow past ~1.8e19: r_xy^2 = inf made v = 0.5 (theta = pi / 2) at 45 degrees latitude.
+    p = torch.tensor([[1e20, 0.0, 1e20], [-3e30, 4e30, 5e30], [3.0, 4.0, 5.0]])
+    dp = torch.tensor([[0.0, 1e20, 0.0], [1e30, 2e30, -1e30], [1.0, 2.0, -1.0]])
+    uv, uv_dx, _ = M.spherical_uv(p, points_dx=dp, points_dy=dp)
+    ref, ref_dx, _ = M.spherical_uv(p.double(), points_dx=dp.double(), points_dy=dp.double())
+    torch.testing.assert_close(uv[0], torch.tensor([0.5, 0.25]), rtol=0, atol=1e-7)
+    torch.testing.assert_close(uv.double(), ref, rtol=0, atol=1e-6)
+    torch.testing.assert_close(uv_dx.double(), ref_dx, rtol=1e-5, atol=0)
+    # and the scale-free derivative: d(u)/dy at (1, 0) is 1 / (2 pi r)
+    assert uv_dx[0, 0].item() == pytest.approx(1 / (2 * math.pi), rel=1e-6)
+
+
+def test_texture_matrix_at_infinity():
+    # w = 0 (a point at infinity): +-inf in both coordinates, +inf for x = 0 (was 0 / 0 = NaN),
+    # +inf derivatives, and no NaN in the gradients.
+    m = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]], dtype=F64, requires_grad=True)
+    uv = torch.tensor([[0.0, 0.5], [0.0, -0.5], [2.0, 1.0]], dtype=F64, requires_grad=True)
+    ones = torch.ones(3, 2, dtype=F64)
+    out, dx, _ = M.texture_matrix(uv, m, uv_dx=ones, uv_dy=ones)
+    assert out[:2].tolist() == [[math.inf, math.inf], [math.inf, -math.inf]]
+    assert out[2].tolist() == [1.0, 0.5]
+    assert dx[:2].tolist() == [[math.inf] * 2] * 2
+    out[2].sum().backward()
+    # d(x / w)/d(m) and d/d(uv) at the finite point only: u = 2, v = 1, w = 2
+    want_m = torch.tensor([[1.0, 0.5, 0.5], [1.0, 0.5, 0.5], [-1.5, -0.75, -0.75]], dtype=F64)
+    torch.testing.assert_close(m.grad, want_m, rtol=0, atol=1e-15)
+    torch.testing.assert_close(uv.grad, torch.tensor([[0.0, 0.0], [0.0, 0.0], [-0.25, 0.5]], dtype=F64),
+                               rtol=0, atol=1e-15)
+
+
+def test_cylindrical_ref_parallel_to_axis_raises():
+    p = torch.randn(4, 3, generator=_gen(41), dtype=F64)
+    for ref in ((0.0, 0.0, 2.0), (0.0, 0.0, -1.0), (0.0, 0.0, 0.0), (1e-10, 0.0, 1.0)):
+        with pytest.raises(ValueError, match=r"ref: must not be parallel to axis .*got ref \[.*\] with axis "
+                                             r"\[0\.0, 0\.0, 1\.0\]"):
+            M.cylindrical_uv(p, (0, 0, 0), (0.0, 0.0, 1.0), ref=ref)
+    # one bad ref in a batch is enough, and the message shows that one
+    refs = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 3.0]], dtype=F64)
+    with pytest.raises(ValueError, match=r"got ref \[0\.0, 0\.0, 3\.0\]"):
+        M.cylindrical_uv(p[:2], (0, 0, 0), (0.0, 0.0, 1.0), ref=refs)
+    # float32 rounds the projection of a 1e-6 rad tilt to noise: refused there, not in float64
+    with pytest.raises(ValueError, match="ref: must not be parallel"):
+        M.cylindrical_uv(p.float(), (0, 0, 0), (0.0, 0.0, 1.0), ref=(1e-6, 0.0, 1.0))
+    # a small but clear angle still works
+    uv = M.cylindrical_uv(torch.tensor([[1.0, 0.0, 0.0]], dtype=F64), (0, 0, 0), (0.0, 0.0, 1.0), ref=(1e-2, 0, 1))
+    assert uv[0, 0].item() == pytest.approx(0.5, abs=1e-12)
+
+
+def test_non_numeric_parameters_name_the_argument():
+    # torch.as_tensor's own message was "new(): invalid data type 'str'", naming nothing.
+    p = torch.zeros(4, 3)
+    cases = [
+        (lambda: M.planar_uv(p, (0, 0, 0), "abc", (0, 1.0, 0)), r"axis_u must be a tensor or numbers of shape "
+                                                                  r"\[\.\.\., 3\], got str 'abc'"),
+        (lambda: M.spherical_uv(p, "origin"), r"center must be a tensor or numbers of shape \[\.\.\., 3\], got str"),
+        (lambda: M.cylindrical_uv(p, (0, 0, 0), (0, 0, 1.0), ref=[1.0, "x", 0]), r"ref must be a tensor or numbers"),
+        (lambda: M.box_uv(p, p, size="2"), r"size must be a tensor or numbers of shape \[\.\.\.\].*got str '2'"),
+        (lambda: M.uv_transform(angle="1"), r"angle must be a tensor or numbers of shape \[\.\.\.\], got str '1'"),
+        (lambda: M.uv_transform(shift="ab"), r"shift must be a tensor or numbers of shape \[\.\.\., 2\], got str"),
+        (lambda: M.uv_transform(scale=None), r"scale must be a tensor or numbers .*got NoneType None"),
+        (lambda: M.uv_transform(center={"u": 0.5}), r"center must be a tensor or numbers of shape \[\.\.\., 2\]"),
+    ]
+    for fn, match in cases:
+        with pytest.raises(TypeError, match=match):
+            fn()
+
+
+def test_box_uv_size_must_be_positive():
+    # 2 / size: size 0 gave inf / NaN uv, a negative size a mirrored box.
+    p = torch.rand(3, 3, generator=_gen(42), dtype=F64)
+    for size in (0.0, -1.0, float("nan"), torch.tensor([1.0, 0.0, 2.0], dtype=F64)):
+        with pytest.raises(ValueError, match=r"size must be positive \(the box's edge length\), got (0\.0|-1\.0|nan)"):
+            M.box_uv(p, p, size=size)
+    # an int tensor size is a float size
+    torch.testing.assert_close(M.box_uv(p, p, size=torch.tensor(2)), M.box_uv(p, p, size=2.0), rtol=0, atol=0)

@@ -100,3 +100,46 @@ def test_bad_input(spot):
         m(_mvp(1), (8, 8), uv=torch.rand(10, 2))
     with pytest.raises(TypeError, match=r"uv: expected a float tensor \(3225, 2\).*got list"):
         m(_mvp(1), (8, 8), uv=[[0.5, 0.5]])
+
+
+def test_bad_input_names_the_argument(spot):
+    with pytest.raises(TypeError, match=r"background: expected a number, got str"):
+        difftex.TexturedMesh(spot, torch.rand(3, 8, 8), background="white")
+    with pytest.raises(ValueError, match=r"background: expected a finite number, got nan"):
+        difftex.TexturedMesh(spot, torch.rand(3, 8, 8), background=float("nan"))
+    # float16 used to reach the rasterizer as the positions' dtype and blame pos
+    with pytest.raises(TypeError, match=r"texture: expected float32 or float64 .*dtype torch.float16"):
+        difftex.TexturedMesh(spot, torch.rand(3, 8, 8).half())
+    m = difftex.TexturedMesh(spot, torch.rand(3, 8, 8))
+    # an int uv used to blame interpolate's attr
+    with pytest.raises(TypeError, match=r"uv: expected a floating-point tensor .*\(3225, 2\).*dtype torch.int64"):
+        m(_mvp(1), (8, 8), uv=torch.zeros(3225, 2, dtype=torch.int64))
+    with pytest.raises(TypeError, match=r"uv: expected dtype torch.float32 like the texture, got .*float64"):
+        m(_mvp(1), (8, 8), uv=torch.zeros(3225, 2, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("filter", ["nearest", "bilinear", "bicubic", "trilinear", "nearest-mip", "anisotropic",
+                                    "ewa", "auto"])
+def test_no_covered_pixel_gives_zero_gradients(spot, filter):
+    # The camera looks away from spot: no pixel covered. Every filter must give the
+    # texture (and a learned uv) a zero gradient, not None (the native mip taps
+    # reported "no texel read" as None, so trilinear / anisotropic left it None).
+    model = difftex.TexturedMesh(spot, torch.rand(3, 8, 8), filter=filter, learn_uv=True, background=0.25)
+    eye = torch.tensor([[2.0, 0.6, 2.0]])
+    proj = camera.perspective(40.0, 1.0, 0.1, 100.0, degrees=True)
+    mvp = proj @ camera.look_at(eye, 2 * eye, torch.tensor([0.0, 1.0, 0.0]))
+    img, mask = model(mvp, (6, 5))
+    assert not mask.any() and img.shape == (1, 3, 6, 5)
+    assert (img == 0.25).all()
+    img.sum().backward()
+    for name in ("texture", "uv"):
+        g = getattr(model, name).grad
+        assert g is not None, name
+        assert torch.equal(g, torch.zeros_like(g)), name
+
+
+def test_resolution_that_cannot_fit_names_resolution(spot):
+    # 30000^2 asked the allocator for tens of GB; the rasterizer's limit (16 GiB) names the resolution first.
+    model = difftex.TexturedMesh(spot, torch.rand(3, 8, 8))
+    with pytest.raises(ValueError, match=r"resolution 30000x30000 with batch 2 needs at least 93\.9 GiB"):
+        model(_mvp(2), (30000, 30000))

@@ -269,6 +269,33 @@ def test_huge_uv_is_finite():
         assert torch.isfinite(out).all()
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["float32", "float64"])
+@pytest.mark.parametrize("filt", ["nearest", "bilinear", "bicubic"])
+def test_finite_uv_whose_texel_coordinate_overflows(filt, dtype):
+    # u = max / 2 is finite but u * W is inf: the texel coordinate was inf and
+    # its fraction inf - floor(inf) NaN (border: every filter; clamp: bicubic;
+    # the reference: every mode). u = +-max / 2 is an even whole number, so
+    # repeat and mirror read it as u = 0; clamp and border read it as any
+    # point far outside, here 20 textures away. Values and both gradients must
+    # be those of the moderate coordinate, under each implementation (impl).
+    big = torch.finfo(dtype).max / 2
+    tex, _ = _rand_case(13, (5, 6), B=1, C=2, dtype=dtype)
+    pts = [(big, 0.3), (-big, 0.7), (0.6, big), (0.4, -big), (big, -big)]
+    uv = torch.tensor(pts, dtype=dtype).view(1, 1, len(pts), 2)
+    tol = dict(atol=1e-5, rtol=0) if dtype == torch.float32 else dict(atol=1e-12, rtol=0)
+    for wrap in difftex.WRAP_MODES:
+        near = 0.0 if wrap in ("repeat", "mirror") else 20.0
+        uv_ref = torch.where(uv.abs() == big, near * torch.sign(uv), uv)
+        fn = lambda t, u: difftex.sample(t, u, filter=filt, wrap=wrap, border_value=0.3)
+        torch.manual_seed(0)
+        got = _grads(fn, tex, uv)
+        torch.manual_seed(0)
+        want = _grads(fn, tex, uv_ref)
+        for name, a, b in zip(("value", "texture gradient", "uv gradient"), got, want):
+            assert torch.isfinite(a).all(), f"{wrap}: {name} not finite"
+            torch.testing.assert_close(a, b, **tol, msg=f"{wrap}: {name}")
+
+
 @pytest.mark.parametrize("kwargs,exc,match", [
     (dict(texture=torch.rand(3, 4, 4)), ValueError, r"texture: expected 4-D \[B, C, H, W\], got shape \(3, 4, 4\)"),
     (dict(texture=torch.zeros(1, 3, 4, 4, dtype=torch.int64)), TypeError, r"texture: expected a floating-point"),

@@ -39,6 +39,40 @@ def _cubic_far(t: Tensor) -> tuple[Tensor, Tensor]:
     return ((a * t - 5 * a) * t + 8 * a) * t - 4 * a, (3 * a * t - 10 * a) * t + 8 * a
 
 
+# Period in uv of the wraps that repeat (mirror repeats after a flip and back).
+_PERIOD = {"repeat": 1.0, "mirror": 2.0}
+# Past this distance in uv from [0, 1] every tap of every filter is off the
+# texture for any size n >= 1 (x = u * n - 0.5 <= -8.5, bicubic reaches 2
+# texels): clamp and border read the same there at any distance.
+_FAR = 8.0
+
+
+def reduce_coordinate(u: Tensor, mode: str) -> Tensor:
+    """u moved to a coordinate that reads the same texels under ``mode``, with ``|u| <= 9``.
+
+    ``u * n`` must stay finite and keep its fraction: a finite uv of 1e38 in
+    float32 times 8 texels is inf, and inf - floor(inf) is NaN. Repeat and
+    mirror drop whole periods (exact in floating point for ``|u| >=`` one
+    period; smaller values are left untouched, so ordinary coordinates read
+    bit for bit as before); clamp and border stop at ``_FAR`` past the
+    edge, where every tap is off the texture already. NaN and inf stay
+    non-finite (the pixel shows them). Gradient 1 (0 where clamped: the
+    read is constant there).
+    """
+    p = _PERIOD.get(mode)
+    if p is not None:
+        return torch.where(u.abs() >= p, u - p * torch.floor(u.detach() / p), u)
+    # 0 * u keeps inf non-finite (NaN) instead of clamping it to a finite read.
+    return u.clamp(-_FAR, 1 + _FAR) + 0 * u
+
+
+def reduce_uv(uv: Tensor, wrap_u: str, wrap_v: str) -> Tensor:
+    """``reduce_coordinate`` on the last axis of uv [..., 2], per axis mode."""
+    if wrap_u == wrap_v:
+        return reduce_coordinate(uv, wrap_u)
+    return torch.stack((reduce_coordinate(uv[..., 0], wrap_u), reduce_coordinate(uv[..., 1], wrap_v)), -1)
+
+
 # Tap offsets from floor(x) (round(x) for nearest) along one axis.
 _OFFSETS = {"nearest": (0,), "linear": (0, 1), "cubic": (-1, 0, 1, 2)}
 
@@ -77,7 +111,7 @@ class _Taps:
     def __init__(self, texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, derivs: bool = False):
         H, W = texture.shape[-2:]
         # [Bt, 2, M] keeps the points contiguous, the layout of the gathers.
-        xy = (uv * uv.new_tensor([W, H]) - 0.5).transpose(1, 2).contiguous()
+        xy = (reduce_uv(uv, wrap_u, wrap_v) * uv.new_tensor([W, H]) - 0.5).transpose(1, 2).contiguous()
         base = torch.round(xy) if kind == "nearest" else torch.floor(xy)
         w, d = _axis_weights(xy - base, kind, derivs)
         offs = torch.tensor(_OFFSETS[kind], device=uv.device).view(-1, 1)

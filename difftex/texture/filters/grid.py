@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..wrap import fold, fold_slope, pad_index
-from .gather import separable_backward, separable_forward
+from .gather import reduce_coordinate, separable_backward, separable_forward
 
 _GS_MODE = {"nearest": "nearest", "linear": "bilinear", "cubic": "bicubic"}
 # Texels a tap may reach beyond [0, n) after folding: bicubic reads 2.
@@ -99,6 +99,16 @@ def _crosses_edge(folded: Tensor, W: int, H: int, kind: str, wrap_u: str, wrap_v
             x = folded[..., axis] * n - 0.5
             out |= (x < lo) | (x >= n + hi)
     return out
+
+
+def _fold(u: Tensor, mode: str) -> Tensor:
+    """One period of repeat / mirror; clamp and border stop a few textures past the edge.
+
+    grid_sample scales the coordinate by the texture size: a finite but huge
+    u (1e38 in float32) would overflow to inf there and read NaN. Past the
+    stop every tap is off the texture, so the read is the same.
+    """
+    return fold(u, mode) if mode in ("repeat", "mirror") else reduce_coordinate(u, mode)
 
 
 _GS_ENUM = {"linear": 0, "nearest": 1, "cubic": 2}  # aten's GridSamplerInterpolation
@@ -184,9 +194,9 @@ class FastSample:
             self.bad = ~torch.isfinite(uv).all(-1)
             uv = torch.where(self.bad.unsqueeze(-1), 0.0, uv)
         if wrap_u == wrap_v:
-            folded = fold(uv, wrap_u)
+            folded = _fold(uv, wrap_u)
         else:
-            folded = torch.stack((fold(uv[..., 0], wrap_u), fold(uv[..., 1], wrap_v)), -1)
+            folded = torch.stack((_fold(uv[..., 0], wrap_u), _fold(uv[..., 1], wrap_v)), -1)
         if kind == "nearest":
             # To the centre of the texel that x = u * n - 0.5 rounds to (half
             # to even, as the reference and grid_sample): grid_sample's own
