@@ -131,7 +131,7 @@ class _Rows:
         B, M = grid.shape[:2]
         split = 1
         h, w = tex.shape[-2:]
-        if B == 1 and not grid.is_cuda and (not tex_grad or M >= h * w):
+        if B == 1 and grid.device.type == "cpu" and (not tex_grad or M >= h * w):
             split = max(1, min(torch.get_num_threads(), -(-M // _ROW)))
         # Unsplit, the points are one row (as fast, and no padded copy).
         row = -(-M // split) if split == 1 else _ROW
@@ -188,9 +188,9 @@ class FastSample:
         # point instead and put the NaN back afterwards, so the pixel is NaN
         # and passes no gradient. On CPU one sum says whether any point is
         # bad (or so large that the sum overflows) without a per-point pass;
-        # on CUDA the masks are cheaper than that sync.
+        # on other devices the masks are cheaper than that sync.
         self.bad = None
-        if uv.is_cuda or not bool(torch.isfinite(uv.sum())):
+        if uv.device.type != "cpu" or not bool(torch.isfinite(uv.sum())):
             self.bad = ~torch.isfinite(uv).all(-1)
             uv = torch.where(self.bad.unsqueeze(-1), 0.0, uv)
         if wrap_u == wrap_v:
