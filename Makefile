@@ -16,13 +16,13 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 demo: $(VENV)/.installed
-	$(PY) experiments/fit_texture.py --out results/fit_texture
+	$(PY) -m experiments.fit.fit_texture --out results/fit_texture
 
 test: $(VENV)/.installed
 	$(PY) -m pytest tests
 
 bench: $(VENV)/.installed
-	$(PY) experiments/bench_sample.py
+	$(PY) -m experiments.bench.bench_sample
 
 clean:
 	rm -rf $(VENV) results

@@ -126,3 +126,18 @@ def checker_noise_texture(
     n = (torch.rand((channels, size, size), generator=g, dtype=torch.float64) - 0.5) * noise
     tex = (base + n).clamp(0, 1)
     return tex.unsqueeze(0).to(dtype=dtype, device=device)
+def checker_texture(size: int = 512, checks: int = 32, lo: float = 0.1, hi: float = 0.9,
+                    channels: int = 3, dtype: torch.dtype = torch.float32) -> Tensor:
+    """[1, C, size, size] texel image of the checker whose ideal form :func:`checker_footprint_mean` integrates.
+
+    Texel (i, j) is ``hi`` where ``floor(i / cell) + floor(j / cell)`` is
+    odd, ``lo`` elsewhere; cell = size / checks texels, so check edges lie on
+    texel edges and mip levels up to log2(cell) are exact checkers too.
+    """
+    if size % checks:
+        raise ValueError(f"checker_texture: size {size} must be a multiple of checks {checks}")
+    i = torch.arange(size) // (size // checks)
+    board = ((i.view(-1, 1) + i.view(1, -1)) % 2).to(torch.float64)
+    return (lo + (hi - lo) * board).expand(channels, size, size).unsqueeze(0).to(dtype).contiguous()
+
+

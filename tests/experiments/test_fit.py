@@ -1,12 +1,7 @@
 """The main job at a small size: texture and uv fits through TexturedMesh."""
-import sys
-from pathlib import Path
-
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
-import fit_texture  # noqa: E402
-import fit_uv  # noqa: E402
+from experiments.fit import fit_texture, fit_uv
 
 SMALL = dict(iters=40, res=64, views=16, batch=4, eval_views=8, progress=False, save=False)
 

@@ -1,4 +1,4 @@
-"""Stability of every filter where filters fail (experiments/stability.py at small sizes), with stated bounds.
+"""Stability of every filter where filters fail (experiments/studies/stability.py at small sizes), with stated bounds.
 
 Bounds used throughout (docs/stability.md explains them):
 
@@ -10,18 +10,12 @@ Bounds used throughout (docs/stability.md explains them):
   ``C * value range * max(H, W)`` (the steepest slope such a texture has);
 * errors against exact or 16x16-supersampled references as stated per test.
 """
-import sys
-from pathlib import Path
-
 import pytest
 import torch
 
 import difftex
-from difftex.testing import scenes
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
-import speed_vs_accuracy as sva  # noqa: E402
-import stability as st  # noqa: E402
+from difftex.testing import checker_footprint_mean, checker_pixel_box_mean, plane_fov, scenes
+from experiments.studies import stability as st
 
 FILTERS = st.FILTERS
 MIP = st.MIP_FILTERS
@@ -46,9 +40,9 @@ def _bounded(r: dict, f: str) -> None:
 def test_checker_closed_form_matches_brute_force():
     # 1200^2 point samples of the ideal checker over the same parallelograms
     # converge to it at O(1/n): within 2e-3 here.
-    uv, dx, dy = scenes.grazing_plane(8, 10.0, 1.0, fov_deg=sva.plane_fov(10.0), dtype=torch.float64)
+    uv, dx, dy = scenes.grazing_plane(8, 10.0, 1.0, fov_deg=plane_fov(10.0), dtype=torch.float64)
     uv, dx, dy = uv[:, ::3, ::3], dx[:, ::3, ::3], dy[:, ::3, ::3]
-    cf = sva.checker_footprint_mean(uv, dx, dy, 32)[0, 0]
+    cf = checker_footprint_mean(uv, dx, dy, 32)[0, 0]
     n = 1200
     a = (torch.arange(n, dtype=torch.float64) + 0.5) / n - 0.5
     A, B = torch.meshgrid(a, a, indexing="ij")
@@ -59,8 +53,8 @@ def test_checker_closed_form_matches_brute_force():
 
 def test_checker_pixel_box_strips_converge():
     # 16 strips against 64: the perspective term inside a strip is O(strips^-2).
-    a = sva.checker_pixel_box_mean(16, 5.0, sva.plane_fov(5.0), 32, strips=16)
-    b = sva.checker_pixel_box_mean(16, 5.0, sva.plane_fov(5.0), 32, strips=64)
+    a = checker_pixel_box_mean(16, 5.0, plane_fov(5.0), 32, strips=16)
+    b = checker_pixel_box_mean(16, 5.0, plane_fov(5.0), 32, strips=64)
     assert (a - b).abs().max() < 5e-4
 
 

@@ -4,15 +4,12 @@ from __future__ import annotations
 
 import functools
 import math
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from difftex import camera
-
-ROOT = Path(__file__).resolve().parents[2]
-SPOT = ROOT / "data" / "spot" / "spot_triangulated.obj"
+from difftex.testing import SPOT_MESH
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
@@ -22,7 +19,7 @@ def spot_trimesh():
     import trimesh
 
     # process=False keeps the file's face order, so ids compare one to one.
-    return trimesh.load(str(SPOT), process=False, force="mesh")
+    return trimesh.load(str(SPOT_MESH), process=False, force="mesh")
 
 
 def view_matrix(azim_deg: float, elev_deg: float, dist: float, center=(0.0, 0.0, 0.0), fov_deg: float = 45.0,
@@ -64,13 +61,6 @@ def ray_cast(mesh, mvp: torch.Tensor, H: int, W: int):
     ids[ray] = tri
     hits[ray] = loc
     return ids.reshape(H, W), hits.reshape(H, W, 3)
-
-
-def icosphere(subdivisions: int):
-    import trimesh
-
-    m = trimesh.creation.icosphere(subdivisions=subdivisions)
-    return torch.tensor(m.vertices, dtype=torch.float64), torch.tensor(m.faces, dtype=torch.int64)
 
 
 def random_rotation(gen: torch.Generator, dtype=torch.float64) -> torch.Tensor:

@@ -9,7 +9,8 @@ import torch
 
 from difftex import camera, interpolate, rasterize
 
-from tests.geometry.raster_helpers import DEVICES, icosphere, random_rotation
+from difftex.testing import icosphere
+from tests.geometry.raster_helpers import DEVICES, random_rotation
 
 
 def _tilted_quad(tilt_deg=60.0, dist=2.2):
@@ -107,7 +108,7 @@ def test_uv_derivatives_units_and_signs_on_screen_aligned_quad():
 
 
 def _sphere_scene(seed=0, dtype=torch.float64, subdivisions=2):
-    V, F = icosphere(subdivisions)
+    V, F = icosphere(subdivisions, dtype=torch.float64)
     view = torch.eye(4, dtype=torch.float64)
     view[:3, :3] = random_rotation(torch.Generator().manual_seed(seed))
     view[:3, 3] = torch.tensor([0.2, -0.1, -2.6], dtype=torch.float64)

@@ -11,7 +11,8 @@ import difftex
 from difftex import camera, rasterize
 from difftex.geometry.raster import _coverage_count
 
-from tests.geometry.raster_helpers import DEVICES, icosphere, random_rotation, ray_cast, spot_trimesh, view_matrix
+from difftex.testing import icosphere
+from tests.geometry.raster_helpers import DEVICES, random_rotation, ray_cast, spot_trimesh, view_matrix
 
 
 def _boundary(ids: np.ndarray) -> np.ndarray:
@@ -82,7 +83,7 @@ def test_matches_trimesh_ray_casting_on_spot(azim, elev, dtype):
 def test_icosphere_is_watertight_from_many_views():
     from scipy import ndimage
 
-    V, F = icosphere(3)
+    V, F = icosphere(3, dtype=torch.float64)
     gen = torch.Generator().manual_seed(0)
     proj = camera.perspective(40.0, 1.0, 0.5, 10.0, degrees=True, dtype=torch.float64)
     H = W = 64
@@ -305,7 +306,7 @@ def test_backface_culling_and_winding():
 
 
 def test_batch_matches_single_calls_and_broadcast():
-    V, F = icosphere(1)
+    V, F = icosphere(1, dtype=torch.float64)
     gen = torch.Generator().manual_seed(3)
     proj = camera.perspective(50.0, 1.5, 0.5, 10.0, degrees=True, dtype=torch.float64)
     mats = []
@@ -346,7 +347,7 @@ def test_large_triangle_is_split_without_gaps(monkeypatch):
     # code paths run on a small image, and compare with the default path.
     import difftex.geometry.raster as R
 
-    V, F = icosphere(2)
+    V, F = icosphere(2, dtype=torch.float64)
     view = torch.eye(4, dtype=torch.float64)
     view[2, 3] = -1.6
     pos = camera.transform(V, camera.perspective(60.0, 1.0, 0.1, 10.0, degrees=True, dtype=torch.float64) @ view)
@@ -364,7 +365,7 @@ def test_large_triangle_is_split_without_gaps(monkeypatch):
 
 
 def _scene64(seed=0):
-    V, F = icosphere(1)
+    V, F = icosphere(1, dtype=torch.float64)
     view = torch.eye(4, dtype=torch.float64)
     view[:3, :3] = random_rotation(torch.Generator().manual_seed(seed))
     view[2, 3] = -2.5
@@ -497,7 +498,7 @@ def test_same_result_on_every_device(device):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_float32_watertight():
-    V, F = icosphere(3)
+    V, F = icosphere(3, dtype=torch.float64)
     view = torch.eye(4, dtype=torch.float64)
     view[2, 3] = -3.0
     pos = camera.transform(V, camera.perspective(40.0, 1.0, 0.5, 10.0, degrees=True, dtype=torch.float64) @ view)

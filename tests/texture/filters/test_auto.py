@@ -3,11 +3,9 @@ from __future__ import annotations
 
 import math
 import sys
-from pathlib import Path
 
 import pytest
 import torch
-import torch.nn.functional as F
 
 import difftex
 from difftex.texture.options import MIP_FILTERS
@@ -17,7 +15,7 @@ from difftex.texture.filters.anisotropic import tap_count
 from difftex.texture.filters.auto import auto_tap_count
 from difftex.texture.lod import ellipse, footprint
 from difftex.metrics import psnr
-from difftex.testing.scenes import checker_noise_texture, grazing_plane
+from difftex.testing import checker_noise_texture, grazing_plane, plane_scene, sphere_scene, supersampled
 
 f64 = torch.float64
 
@@ -125,7 +123,7 @@ def plane():
     """The grazing-plane scene at a reduced size: 96x96, 256^2 texture, 16x16 reference."""
     tex = checker_noise_texture(256, checks=8)
     uv, dx, dy = grazing_plane(96, 20.0, 1.0)
-    ref = F.avg_pool2d(difftex.sample(tex, grazing_plane(96, 20.0, 1.0, ss=16)[0]), 16)
+    ref = supersampled(tex, grazing_plane(96, 20.0, 1.0, ss=16)[0], 16, "repeat")
     return tex, uv, dx, dy, ref
 
 
@@ -145,7 +143,7 @@ def test_auto_is_within_half_a_db_of_anisotropic_16_with_fewer_taps(plane, monke
         out = difftex.sample(tex, uv, filter=name, uv_dx=dx, uv_dy=dy, max_aniso=16, **kw)
         scores[name] = psnr(out, ref)
     # Measured: aniso 16 37.81 dB, auto 37.82 dB, trilinear 25.43 dB; taps 46.9k vs 46.3k (the
-    # default tolerance trims only counts over 10; the 17-scene check is experiments/speed_vs_accuracy.py).
+    # default tolerance trims only counts over 10; the 17-scene check is experiments/studies/speed_vs_accuracy.py).
     assert scores["auto"] > scores["anisotropic"] - 0.5, scores
     assert scores["auto"] > scores["trilinear"] + 8, scores
     assert reads["auto"] < reads["anisotropic"], reads
@@ -153,17 +151,13 @@ def test_auto_is_within_half_a_db_of_anisotropic_16_with_fewer_taps(plane, monke
 
 @pytest.mark.parametrize("scene", ["plane-spot-5", "sphere-0.5x"])
 def test_auto_within_half_a_db_where_it_used_not_to_be(scene):
-    # The two scenes of experiments/speed_vs_accuracy.py (at 64^2) where the
+    # The two scenes of the speed-vs-accuracy suite (difftex.testing.suite, at 64^2) where the
     # first auto fell short: a 5-degree plane (tolerance 0.25: -1.0 dB) and a
     # sphere magnified 2x (a one-texel spacing floor: -6.6 dB, one bilinear
     # read against anisotropic's two level-0 taps).
-    sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "experiments"))
-    import speed_vs_accuracy as sva
-
-    sc = (sva.plane_scene(5, "spot", 64, ss_rates=()) if scene.startswith("plane")
-          else sva.sphere_scene(0.5, 64, ss_rates=()))
+    sc = plane_scene(5, "spot", 64, ss_rates=()) if scene.startswith("plane") else sphere_scene(0.5, 64, ss_rates=())
     kw = dict(wrap=sc.wrap, uv_dx=sc.uv_dx, uv_dy=sc.uv_dy)
-    score = {f: sva.masked_psnr(difftex.sample(sc.texture, sc.uv, filter=f, **kw), sc.reference, sc.mask)
+    score = {f: psnr(difftex.sample(sc.texture, sc.uv, filter=f, **kw), sc.reference, mask=sc.mask)
              for f in ("anisotropic", "auto")}
     # Measured: plane 41.78 / 41.55 dB, sphere 55.20 / 55.20 dB.
     assert score["auto"] > score["anisotropic"] - 0.5, score

@@ -16,7 +16,7 @@ set size during the first fwd+bwd of a fresh subprocess (the kernel's
 high-water mark is reset just before the call, so loading and other scenes
 do not count), ``torch.cuda.max_memory_allocated`` on CUDA.
 
-    python experiments/bench_raster.py [--device cuda] [--reps 5] [--out docs/bench_raster.md]
+    python -m experiments.bench.bench_raster [--device cuda] [--reps 5] [--out docs/bench_raster.md]
 """
 from __future__ import annotations
 
@@ -26,10 +26,9 @@ import math
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 SCENES = [
     ("spot", 5856, 256),
@@ -51,17 +50,19 @@ def _mesh(kind: str, param: int):
     import torch
     import trimesh
 
-    if kind == "spot":
-        m = trimesh.load(str(ROOT / "data" / "spot" / "spot_triangulated.obj"), process=False, force="mesh")
-        uv = torch.tensor(m.visual.uv, dtype=torch.float32)
-    elif kind == "icosphere":
-        m = trimesh.creation.icosphere(subdivisions=param)
-        uv = None
-    else:  # uv sphere with 2 * param * param triangles (about)
-        m = trimesh.creation.uv_sphere(count=[param, param])
-        uv = None
-    V = torch.tensor(m.vertices, dtype=torch.float32)
-    F = torch.tensor(m.faces, dtype=torch.int64)
+    from difftex.testing import SPOT_MESH, icosphere
+
+    uv = None
+    if kind == "icosphere":
+        V, F = icosphere(param)
+    else:
+        if kind == "spot":
+            m = trimesh.load(str(SPOT_MESH), process=False, force="mesh")
+            uv = torch.tensor(m.visual.uv, dtype=torch.float32)
+        else:  # uv sphere with 2 * param * param triangles (about)
+            m = trimesh.creation.uv_sphere(count=[param, param])
+        V = torch.tensor(m.vertices, dtype=torch.float32)
+        F = torch.tensor(m.faces, dtype=torch.int64)
     if uv is None:  # spherical uv: any smooth attribute would do
         n = V / V.norm(dim=-1, keepdim=True)
         uv = torch.stack((torch.atan2(n[:, 0], n[:, 2]) / (2 * math.pi) + 0.5, torch.acos(n[:, 1].clamp(-1, 1)) / math.pi), -1)
@@ -80,6 +81,7 @@ def run_one(kind: str, param: int, res: int, device: str, reps: int) -> dict:
 
     import difftex
     from difftex import camera
+    from difftex.testing import time_interleaved
 
     V, F, uv = _mesh(kind, param)
     center = (V.min(0).values + V.max(0).values) / 2
@@ -128,19 +130,9 @@ def run_one(kind: str, param: int, res: int, device: str, reps: int) -> dict:
         except OSError:
             peak_mb = float("nan")
 
-    fns = [raster, fwd, fwdbwd]
-    for fn in fns:
-        fn()
-    times = [[] for _ in fns]
-    for _ in range(reps):
-        for fn, ts in zip(fns, times):
-            sync()
-            t = time.perf_counter()
-            fn()
-            sync()
-            ts.append((time.perf_counter() - t) * 1e3)
-    med = [sorted(ts)[len(ts) // 2] for ts in times]
-    best = [min(ts) for ts in times]
+    timings = time_interleaved([raster, fwd, fwdbwd], reps, device=device)
+    med = [t.median for t in timings]
+    best = [t.min for t in timings]
 
     fr = raster()
     covered = float((fr.tri_id >= 0).float().mean())
@@ -179,8 +171,10 @@ def main() -> None:
     rows = []
     for kind, param, res in SCENES:
         out = subprocess.run(
-            [sys.executable, __file__, "--device", args.device, "--reps", str(args.reps), "--one", f"{kind},{param},{res}"],
-            capture_output=True, text=True, env=dict(os.environ),
+            # As a module from the repository root, like this process (the package imports need it).
+            [sys.executable, "-m", "experiments.bench.bench_raster", "--device", args.device, "--reps", str(args.reps),
+             "--one", f"{kind},{param},{res}"],
+            capture_output=True, text=True, env=dict(os.environ), cwd=ROOT,
         )
         if out.returncode != 0:
             print(out.stderr, file=sys.stderr)
@@ -218,7 +212,7 @@ def main() -> None:
         "and the uv. Peak MB: growth of the process's peak memory during the first fwd+bwd of a fresh "
         "process (CPU: resident set high-water mark; CUDA: max_memory_allocated). Camera: 45 degree "
         "perspective looking at the mesh from a fixed oblique direction; no backface culling. "
-        "Regenerate with `python experiments/bench_raster.py --out docs/bench_raster.md`.",
+        "Regenerate with `python -m experiments.bench.bench_raster --out docs/bench_raster.md`.",
     ]
     table = "\n".join(lines)
     print()

@@ -1,41 +1,32 @@
 """Every filter on one grazing view of a textured plane, side by side with the reference.
 
 The spot texture (1024x1024, repeat) on the ground plane of
-``difftex.scenes.grazing_plane`` (camera 1 unit up, pitched 20 degrees down),
+``difftex.testing.grazing_plane`` (camera 1 unit up, pitched 20 degrees down),
 rendered by each filter at 192x192 and by 16x16 supersampled bilinear (the
 reference). Writes a labelled PNG grid with each filter's PSNR and forward
-time, and prints the table.
+time (median of ``--repeats`` interleaved rounds), and prints the table.
 
-    python experiments/compare_filters.py [--out docs/images/filters.png]
+    python -m experiments.studies.compare_filters [--out docs/images/filters.png]
 """
 from __future__ import annotations
 
 import argparse
-import importlib
-import time
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 
 import difftex
 from difftex.metrics import psnr
-from difftex.testing.scenes import grazing_plane
-
-ROOT = Path(__file__).resolve().parent.parent
+from difftex.testing import grazing_plane, spot_texture, supersampled, time_interleaved
+from difftex.texture.options import FILTERS
 
 
 def methods() -> list[tuple[str, dict]]:
     out = [("nearest", {}), ("bilinear", {}), ("bicubic", {}), ("trilinear", {}),
            ("anisotropic", {"max_aniso": 4}), ("anisotropic", {"max_aniso": 16}), ("ewa", {"max_aniso": 16})]
-    if "auto" in importlib.import_module("difftex.texture.options").FILTERS:
+    if "auto" in FILTERS:
         out.append(("auto", {}))
     return out
-
-
-def render(tex, res: int, pitch: float, filter: str, **kw) -> torch.Tensor:
-    uv, dx, dy = grazing_plane(res, pitch)
-    return difftex.sample(tex, uv, filter=filter, wrap="repeat", uv_dx=dx, uv_dy=dy, **kw)
 
 
 def main() -> None:
@@ -43,24 +34,30 @@ def main() -> None:
     p.add_argument("--res", type=int, default=192)
     p.add_argument("--pitch", type=float, default=20.0)
     p.add_argument("--ss", type=int, default=16)
-    p.add_argument("--out", default="results/compare_filters/filters.png")
+    p.add_argument("--repeats", type=int, default=3, help="timed rounds (median reported)")
+    p.add_argument("--out", default="results/compare_filters/filters.png",
+                   help="the PNG grid (docs/images/filters.png is the one the README shows)")
     args = p.parse_args()
     torch.set_num_threads(1)  # steadier timings on a shared machine
-    tex = difftex.load_texture(ROOT / "data" / "spot" / "spot_texture.png")
+    tex = spot_texture()
     uv_ss, _, _ = grazing_plane(args.res, args.pitch, ss=args.ss)
-    ref = F.avg_pool2d(difftex.sample(tex, uv_ss, filter="bilinear", wrap="repeat"), args.ss)
+    ref = supersampled(tex, uv_ss, args.ss, "repeat")
     tiles, rows = [ref], ["| filter | PSNR dB | forward ms |", "|---|---|---|"]
     labels = [f"reference ({args.ss}x{args.ss} bilinear)"]
-    for name, kw in methods():
-        render(tex, args.res, args.pitch, name, **kw)  # warm-up
-        t = time.perf_counter()
-        img = render(tex, args.res, args.pitch, name, **kw)
-        ms = (time.perf_counter() - t) * 1e3
-        label = name + (f" {kw['max_aniso']}" if name == "anisotropic" else "")
-        db = psnr(img, ref)
-        tiles.append(img)
-        labels.append(f"{label}: {db:.1f} dB, {ms:.0f} ms")
-        rows.append(f"| {label} | {db:.2f} | {ms:.1f} |")
+    uv, dx, dy = grazing_plane(args.res, args.pitch)
+
+    def render(name: str, kw: dict):
+        return lambda: difftex.sample(tex, uv, filter=name, wrap="repeat", uv_dx=dx, uv_dy=dy, **kw)
+
+    with torch.no_grad():
+        timings = time_interleaved([render(name, kw) for name, kw in methods()], args.repeats)
+        for (name, kw), timing in zip(methods(), timings):
+            img = render(name, kw)()
+            label = name + (f" {kw['max_aniso']}" if name == "anisotropic" else "")
+            db = psnr(img, ref)
+            tiles.append(img)
+            labels.append(f"{label}: {db:.1f} dB, {timing.median:.0f} ms")
+            rows.append(f"| {label} | {db:.2f} | {timing.median:.1f} |")
     print("\n".join(rows))
 
     import matplotlib

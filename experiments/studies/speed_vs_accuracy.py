@@ -1,9 +1,10 @@
 """Speed against accuracy of every difftex filter and its peers, on planes, a sphere and the spot cow.
 
-Scenes (every image ``--res`` x ``--res``, 128 by default):
+Scenes (:mod:`difftex.testing.suite`, shared with bench_auto, stability and
+the tests; every image ``--res`` x ``--res``, 128 by default):
 
 * ``plane-checker-P`` / ``plane-spot-P``: the ground plane of
-  :func:`difftex.scenes.grazing_plane` seen ``P`` degrees below the horizon
+  :func:`difftex.testing.grazing_plane` seen ``P`` degrees below the horizon
   (P = 90 is head-on, 5 is grazing; the field of view shrinks with P so that
   every pixel hits the plane), textured with an exact 512^2 checkerboard
   (32 checks a side, values 0.1 / 0.9) or the spot texture, ``repeat``.
@@ -18,8 +19,8 @@ Scenes (every image ``--res`` x ``--res``, 128 by default):
 
 Reference. The 16 x 16 supersampled bilinear render at level 0, box-averaged,
 except the checker planes, which have a closed form: the mean of the ideal
-checker over the pixel's exact footprint (:func:`checker_pixel_box_mean`,
-built on :func:`checker_footprint_mean`, the exact mean over a
+checker over the pixel's exact footprint (:func:`difftex.testing.checker_pixel_box_mean`,
+built on :func:`difftex.testing.checker_footprint_mean`, the exact mean over a
 parallelogram ``uv + a uv_dx + b uv_dy``, ``a, b in [-1/2, 1/2]``).  Mesh scenes are
 scored on the pixels that every supersampling rate covers fully (silhouette
 anti-aliasing is not what is measured).
@@ -29,19 +30,21 @@ anisotropic (max_aniso 2, 4, 8, 16), EWA, and "auto" where the installed
 difftex has it; peers: ``F.grid_sample`` bilinear at one sample a pixel and
 at 2x2, 4x4 and 8x8 supersampled uv (box-averaged), and kornia's
 ``remap(normalized_coordinates=True, align_corners=False)``.  The peers have
-no repeat mode: the texture is padded by one texel (circular for repeat,
-replicate for clamp) and uv folded into [0, 1) (``_pad_and_grid``), which
-is exact and is part of their timed work.
+no repeat mode: along a repeating axis the texture is padded by one texel
+(circular) and uv folded into [0, 1), clamp is their "border" padding
+(:func:`difftex.testing.pad_and_grid`); that is exact and part of their
+timed work.
 
 Timing: only the texture lookup (uv and derivatives given; the supersampled
 peers get their n^2 uv for free, so their cost in a real renderer, n^2
 rasterization and interpolation, is not counted).  Forward under no_grad and
 forward + backward of ``sum()`` with gradients to the texture and uv (the
 mip filters build the pyramid inside the timed region).  Methods are run
-round-robin, ``--repeats`` rounds a scene in a new random order each round
-(so that no method always follows one that evicts the caches), and the
-medians reported, so that the load drift of a shared machine hits every
-method alike;
+round-robin (:func:`difftex.testing.time_interleaved`, forward and
+forward + backward as separate entries), ``--repeats`` rounds a scene in a
+new random order each round (so that no method always follows one that
+evicts the caches), with a pause before every timed call, and the medians
+reported, so that the load drift of a shared machine hits every method alike;
 ``--threads 1`` by default for the same reason.
 
 Outputs in ``--out`` (default results/speed_vs_accuracy): results.csv
@@ -51,22 +54,18 @@ error images) and summary.md; ``--docs`` also writes docs/speed_vs_accuracy.md
 and copies the PNGs to docs/images/.  FLIP (``pip install flip-evaluator``)
 is used where it imports, else the column is empty.
 
-    python experiments/speed_vs_accuracy.py [--res 128] [--repeats 5] [--threads 1] [--docs]
+    python -m experiments.studies.speed_vs_accuracy [--res 128] [--repeats 5] [--threads 1] [--docs]
 """
 from __future__ import annotations
 
 import argparse
 import csv
-import importlib
 import math
 import os
 import platform
-import random
 import shutil
 import statistics
-import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -75,377 +74,22 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-import difftex  # noqa: E402
-from difftex import camera  # noqa: E402
-from difftex.metrics import psnr as _psnr  # noqa: E402
-from difftex.testing.scenes import checker_noise_texture, grazing_plane  # noqa: E402
+import difftex
+from difftex.metrics import psnr
+from difftex.testing import Scene, build_scenes, grid_sample_lookup, kornia_lookup, time_interleaved
+from difftex.texture import options as _sample_mod
 
-_sample_mod = importlib.import_module("difftex.texture.options")
+ROOT = Path(__file__).resolve().parents[2]
 
 try:  # optional perceptual metric; never a dependency of the package
     import flip_evaluator as _flip
 except Exception:  # pragma: no cover - depends on the environment
     _flip = None
 
-PITCHES = (90.0, 60.0, 30.0, 15.0, 5.0)
-SPHERE_MINIFICATION = (0.5, 5.0, 25.0, 100.0)
-SPOT_VIEWS = ((1.6, (1.0, 0.4, 1.0)), (5.0, (-1.0, 0.3, 0.6)), (14.0, (0.3, 0.8, -1.0)))
-CHECKER = dict(size=512, checks=32, lo=0.1, hi=0.9)
-
-
-# --------------------------------------------------------------------------
-# closed-form checker reference
-# --------------------------------------------------------------------------
-
-
-def checker_texture(size: int = 512, checks: int = 32, lo: float = 0.1, hi: float = 0.9,
-                    channels: int = 3, dtype: torch.dtype = torch.float32) -> Tensor:
-    """[1, C, size, size] texel image of the checker whose ideal form :func:`checker_footprint_mean` integrates.
-
-    Texel (i, j) is ``hi`` where ``floor(i / cell) + floor(j / cell)`` is
-    odd, ``lo`` elsewhere; cell = size / checks texels, so check edges lie on
-    texel edges and mip levels up to log2(cell) are exact checkers too.
-    """
-    if size % checks:
-        raise ValueError(f"checker_texture: size {size} must be a multiple of checks {checks}")
-    i = torch.arange(size) // (size // checks)
-    board = ((i.view(-1, 1) + i.view(1, -1)) % 2).to(torch.float64)
-    return (lo + (hi - lo) * board).expand(channels, size, size).unsqueeze(0).to(dtype).contiguous()
-
-
-def _tri(x: Tensor) -> Tensor:
-    """T(x) = integral_0^x s, s(t) = (-1)^floor(t): a triangle wave of period 2 between 0 and 1."""
-    r = torch.remainder(x, 2.0)
-    return torch.where(r < 1, r, 2 - r)
-
-
-def _tri2(x: Tensor) -> Tensor:
-    """integral_0^x T: one per period of 2, plus the in-period part (piecewise quadratic)."""
-    r = torch.remainder(x, 2.0)
-    part = torch.where(r < 1, 0.5 * r * r, 0.5 + 2 * (r - 1) - 0.5 * (r * r - 1))
-    return torch.floor(x / 2.0) + part
-
-
-def checker_footprint_mean(uv: Tensor, uv_dx: Tensor, uv_dy: Tensor, checks: int,
-                           lo: float = 0.1, hi: float = 0.9) -> Tensor:
-    """Exact mean of the ideal checker over each pixel's parallelogram footprint.
-
-    The checker is ``c(u, v) = lo + (hi - lo) (1 - s(n u) s(n v)) / 2`` with
-    ``s(t) = (-1)^floor(t)`` and n = checks per uv unit; the footprint is
-    ``uv + a uv_dx + b uv_dy``, a, b uniform in [-1/2, 1/2] (the affine
-    approximation of the pixel's preimage that the filters also use).  It
-    requires ``uv_dx`` along u only (``uv_dx[..., 1] == 0``), which holds
-    exactly for :func:`grazing_plane` (its camera only pitches).  In check
-    units, with ``A = n du/dx``, ``B = n du/dy``, ``C = n dv/dy``:
-
-        mean(s s) = int_b s(v0 + b C) Q(b) db,
-        Q(b) = int_a s(u0 + b B + a A) da = [T(u0 + bB + A/2) - T(u0 + bB - A/2)] / A,
-
-    with T the triangle wave (antiderivative of s).  s(v0 + bC) is constant
-    between the b where v0 + bC is an integer, and on each such piece the
-    integral of Q is closed form with T2 = int T:
-    ``[T2(u0 + bB + A/2) - T2(u0 + bB - A/2)] / (A B)`` between its ends.
-    Where |A| or |B| is tiny the limits (point sample in a, midpoint in b)
-    are used, whose error is O(A^2), O(B^2).  Computed in float64.
-
-    Args:
-        uv, uv_dx, uv_dy: [B, H, W, 2] as returned by grazing_plane.
-        checks: checker squares per uv unit (per texture repeat).
-
-    Returns:
-        [B, 1, H, W] float64 mean value (one channel; the checker is grey).
-    """
-    if float(uv_dx[..., 1].abs().max()) > 1e-9 * max(1.0, float(uv_dx.abs().max())):
-        raise ValueError("checker_footprint_mean: uv_dx must run along u only (uv_dx[..., 1] == 0)")
-    n = float(checks)
-    u0, v0 = (uv[..., 0].double() * n), (uv[..., 1].double() * n)
-    A = uv_dx[..., 0].double() * n
-    Bq = uv_dy[..., 0].double() * n
-    C = uv_dy[..., 1].double() * n
-    # Break points of s(v0 + b C) in b: integers k strictly inside v0 +- |C|/2.
-    kmin = torch.floor(v0 - C.abs() / 2) + 1
-    K = int(torch.ceil(C.abs().max()).item()) + 2
-    k = kmin.unsqueeze(-1) + torch.arange(K, dtype=torch.float64)
-    Csafe = torch.where(C.abs() > 1e-12, C, torch.ones_like(C))
-    bk = ((k - v0.unsqueeze(-1)) / Csafe.unsqueeze(-1)).clamp(-0.5, 0.5)
-    bk = torch.where(C.abs().unsqueeze(-1) > 1e-12, bk, torch.full_like(bk, 0.5))
-    ends = torch.cat([torch.full_like(bk[..., :1], -0.5), bk, torch.full_like(bk[..., :1], 0.5)], -1)
-    ends, _ = torch.sort(ends, -1)
-    b0, b1 = ends[..., :-1], ends[..., 1:]
-    mid = 0.5 * (b0 + b1)
-    sign = 1.0 - 2.0 * torch.remainder(torch.floor(v0.unsqueeze(-1) + mid * C.unsqueeze(-1)), 2.0)
-    A_, B_, u_ = A.unsqueeze(-1), Bq.unsqueeze(-1), u0.unsqueeze(-1)
-    smallA = A_.abs() < 1e-7
-    Asafe = torch.where(smallA, torch.ones_like(A_), A_)
-
-    def Q(b: Tensor) -> Tensor:
-        x = u_ + b * B_
-        sq = 1.0 - 2.0 * torch.remainder(torch.floor(x), 2.0)
-        return torch.where(smallA, sq, (_tri(x + A_ / 2) - _tri(x - A_ / 2)) / Asafe)
-
-    smallB = (B_ * (b1 - b0)).abs() < 1e-6
-    Bsafe = torch.where(B_.abs() < 1e-300, torch.ones_like(B_), B_)
-
-    def T2diff(b: Tensor) -> Tensor:
-        x = u_ + b * B_
-        return (_tri2(x + A_ / 2) - _tri2(x - A_ / 2)) / Asafe
-
-    exact = (T2diff(b1) - T2diff(b0)) / Bsafe
-    piece = torch.where(smallB | smallA, Q(mid) * (b1 - b0), exact)
-    ss = (sign * piece).sum(-1)
-    return (lo + (hi - lo) * (1 - ss) / 2).unsqueeze(1)
-
-
-def checker_pixel_box_mean(res: int, pitch: float, fov_deg: float, checks: int, lo: float = 0.1,
-                           hi: float = 0.9, strips: int = 16) -> Tensor:
-    """Mean of the ideal checker over each pixel's true (screen-space box) footprint on the grazing plane.
-
-    The camera of :func:`grazing_plane` only pitches, so along an image row
-    v is constant and u affine in the column: a pixel's preimage is a
-    trapezoid, and a horizontal strip of it ``1 / strips`` pixels tall is,
-    up to the perspective curvature inside the strip (O(strips^-2)), the
-    parallelogram at the strip's centre with the full pixel width.  Each
-    strip is integrated exactly by :func:`checker_footprint_mean` and the
-    strips averaged: exact along the row, no aliasing across check edges,
-    only the smooth perspective term approximated.
-
-    Returns:
-        [1, 1, res, res] float64.
-    """
-    uv, dx, dy = grazing_plane(res, pitch, 1.0, fov_deg=fov_deg, ss=strips, dtype=torch.float64)
-    n = strips
-    # Strip centres at the pixel's centre column: the mean of the two middle
-    # sub-columns (u is affine along a row); the strip's width is the whole
-    # pixel (n sub-columns), its height one sub-row.
-    mid = uv.view(1, res * n, res, n, 2)[:, :, :, n // 2 - 1:n // 2 + 1].mean(3)
-    dxs = dx.view(1, res * n, res, n, 2)[:, :, :, 0] * n
-    dys = dy.view(1, res * n, res, n, 2)[:, :, :, 0]
-    m = checker_footprint_mean(mid, dxs, dys, checks, lo, hi)  # [1, 1, res * n, res]
-    return m.view(1, 1, res, n, res).mean(3)
-
-
-# --------------------------------------------------------------------------
-# scenes
-# --------------------------------------------------------------------------
-
-
-@dataclass
-class Scene:
-    """One test image: the lookups every method needs, and its reference."""
-
-    name: str
-    texture: Tensor                      # [1, C, Ht, Wt]
-    wrap: tuple[str, str]
-    uv: Tensor                           # [1, R, R, 2]
-    uv_dx: Tensor
-    uv_dy: Tensor
-    uv_ss: dict[int, Tensor]             # n -> [1, nR, nR, 2] supersampled uv (n = 2, 4, 8)
-    reference: Tensor                    # [1, C or 1, R, R]
-    mask: Tensor                         # [1, 1, R, R] bool, pixels that are scored
-    reference_kind: str = "16x16 supersampled bilinear"
-    extra: dict = field(default_factory=dict)
-
-
-def load_spot_texture() -> Tensor:
-    """The spot texture [1, 3, 1024, 1024] in [0, 1]."""
-    return difftex.load_texture(ROOT / "data" / "spot" / "spot_texture.png")
-
-
-def _ss_reference(texture: Tensor, uv16: Tensor, wrap: tuple[str, str]) -> Tensor:
-    """Box average of 16 x 16 bilinear level-0 samples a pixel, in chunks of rows (memory)."""
-    with torch.no_grad():
-        rows = []
-        for chunk in torch.split(uv16, 256, dim=1):
-            rows.append(F.avg_pool2d(difftex.sample(texture, chunk, filter="bilinear", wrap=wrap), 16))
-        return torch.cat(rows, 2)
-
-
-def plane_fov(pitch: float) -> float:
-    """Field of view that keeps the top image edge 2 degrees below the horizon (36 at most)."""
-    return min(36.0, 2.0 * (pitch - 2.0)) if pitch < 20 else 36.0
-
-
-def plane_scene(pitch: float, texture_kind: str, res: int, ss_rates=(2, 4, 8)) -> Scene:
-    """Ground plane ``pitch`` degrees below the horizon; ``texture_kind`` "checker" or "spot"."""
-    fov = plane_fov(pitch)
-    uv, dx, dy = grazing_plane(res, pitch, 1.0, fov_deg=fov)
-    uv_ss = {n: grazing_plane(res, pitch, 1.0, fov_deg=fov, ss=n)[0] for n in ss_rates}
-    wrap = ("repeat", "repeat")
-    if texture_kind == "checker":
-        tex = checker_texture(**CHECKER)
-        ref = checker_pixel_box_mean(res, pitch, fov, CHECKER["checks"], CHECKER["lo"], CHECKER["hi"]).float()
-        ref = ref.expand(1, 3, res, res)
-        kind = "closed form (ideal checker over the pixel's trapezoid, 16 exact strips)"
-        # How far the usual 16x16 reference and the parallelogram footprint
-        # that the filters assume are from it (reported, not methods).
-        ss16 = _ss_reference(tex, grazing_plane(res, pitch, 1.0, fov_deg=fov, ss=16)[0], wrap)
-        par = checker_footprint_mean(*grazing_plane(res, pitch, 1.0, fov_deg=fov, dtype=torch.float64),
-                                     CHECKER["checks"], CHECKER["lo"], CHECKER["hi"]).float()
-        extra = {"ss16_psnr": _psnr(ss16, ref), "parallelogram_psnr": _psnr(par.expand_as(ref), ref)}
-    else:
-        tex = load_spot_texture()
-        ref = _ss_reference(tex, grazing_plane(res, pitch, 1.0, fov_deg=fov, ss=16)[0], wrap)
-        kind = "16x16 supersampled bilinear"
-        extra = {}
-    mask = torch.ones(1, 1, res, res, dtype=torch.bool)
-    return Scene(f"plane-{texture_kind}-{pitch:g}", tex, wrap, uv, dx, dy, uv_ss, ref, mask, kind, extra)
-
-
-def icosphere(subdivisions: int = 4) -> tuple[Tensor, Tensor]:
-    """Unit icosphere (trimesh): positions [V, 3] float32, faces [F, 3] int64, counter-clockwise outside."""
-    import trimesh
-    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
-    return torch.tensor(m.vertices, dtype=torch.float32), torch.tensor(m.faces, dtype=torch.int64)
-
-
-def sphere_uv(mvp: Tensor, res: int | tuple[int, int], verts: Tensor, faces: Tensor,
-              derivatives: str = "analytic") -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Rasterize the sphere at ``res`` (R, or (rows, columns)) and map it: (uv, uv_dx, uv_dy, mask [1, 1, R, R]).
-
-    ``derivatives="analytic"`` chains the interpolated position derivatives
-    through spherical_uv's Jacobian (continuous across the atan2 seam);
-    ``"finite"`` takes forward differences of uv between neighbouring pixels,
-    the naive alternative that jumps by a whole texture at the seam
-    (stability.py shows the difference).
-    """
-    pos = camera.transform(verts, mvp.unsqueeze(0))
-    frags = difftex.rasterize(pos, faces, (res, res) if isinstance(res, int) else tuple(res))
-    p, pdx, pdy = difftex.interpolate(verts, faces, frags, derivatives=True)
-    uv, dx, dy = difftex.spherical_uv(p, points_dx=pdx, points_dy=pdy)
-    mask = frags.mask.unsqueeze(1)
-    if derivatives == "finite":
-        dx = torch.cat([uv[:, :, 1:] - uv[:, :, :-1], uv[:, :, -1:] - uv[:, :, -2:-1]], 2)
-        dy = torch.cat([uv[:, 1:] - uv[:, :-1], uv[:, -1:] - uv[:, -2:-1]], 1)
-    m = mask.squeeze(1).unsqueeze(-1)
-    return uv * m, dx * m, dy * m, mask
-
-
-SPHERE_DIR = (-1.0, -0.55, 0.75)  # eye direction: the seam (-x) faces the camera, +z pole in view
-
-
-def sphere_mvp(minification: float, res: int, tex_h: int, fov_deg: float = 40.0,
-               direction=SPHERE_DIR) -> Tensor:
-    """World -> clip of a camera looking at the unit sphere so that its front point is ``minification`` texels a pixel.
-
-    At the front point the spherical map runs tex_h / pi texels a radian
-    along v (twice the rate along u), and a pixel there spans
-    (d - 1) * 2 tan(fov / 2) / res world units, d the centre distance.
-    """
-    t = 2 * math.tan(math.radians(fov_deg) / 2)
-    d = 1.0 + minification * math.pi * res / (tex_h * t)
-    e = torch.tensor(direction, dtype=torch.float32)
-    eye = e / e.norm() * d
-    near = max(1e-3, 0.5 * (d - 1.0))
-    proj = camera.perspective(fov_deg, 1.0, near, d + 2.0, degrees=True)
-    return proj @ camera.look_at(eye, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
-
-
-def _full_coverage(masks: dict[int, Tensor], mask1: Tensor) -> Tensor:
-    """Pixels covered at one sample and fully covered at every supersampling rate."""
-    out = mask1.clone()
-    for n, m in masks.items():
-        out &= F.avg_pool2d(m.float(), n) > 1 - 1e-6
-    return out
-
-
-def sphere_scene(minification: float, res: int, ss_rates=(2, 4, 8), texture: Optional[Tensor] = None) -> Scene:
-    """The textured icosphere at the given minification of its front point."""
-    tex = checker_noise_texture(1024) if texture is None else texture
-    verts, faces = icosphere(4)
-    mvp = sphere_mvp(minification, res, tex.shape[-2])
-    uv, dx, dy, mask1 = sphere_uv(mvp, res, verts, faces)
-    uv_ss, masks = {}, {}
-    for n in tuple(ss_rates) + (16,):
-        u, _, _, m = sphere_uv(mvp, res * n, verts, faces)
-        uv_ss[n], masks[n] = u, m
-    wrap = ("repeat", "clamp")
-    ref = _ss_reference(tex, uv_ss.pop(16), wrap)
-    return Scene(f"sphere-{minification:g}x", tex, wrap, uv, dx, dy, uv_ss, ref, _full_coverage(masks, mask1))
-
-
-def spot_mvp(dist: float, direction) -> Tensor:
-    """World -> clip of a camera ``dist`` units from spot's centre along ``direction``, fov 40."""
-    at = torch.tensor([0.0, 0.1, 0.2])
-    e = torch.tensor(direction, dtype=torch.float32)
-    eye = at + e / e.norm() * dist
-    proj = camera.perspective(40.0, 1.0, 0.05, dist + 5.0, degrees=True)
-    return proj @ camera.look_at(eye, at, torch.tensor([0.0, 1.0, 0.0]))
-
-
-def spot_scene(dist: float, direction, res: int, ss_rates=(2, 4, 8)) -> Scene:
-    """The spot mesh and texture seen from ``direction`` at ``dist`` units (raw pipeline)."""
-    mesh = difftex.load_mesh(ROOT / "data" / "spot" / "spot_triangulated.obj")
-    tex = load_spot_texture()
-    mvp = spot_mvp(dist, direction)
-    pos = camera.transform(mesh.positions, mvp.unsqueeze(0))
-
-    def lookup(r: int):
-        frags = difftex.rasterize(pos, mesh.faces, (r, r))
-        uv, dx, dy = difftex.interpolate(mesh.uv, mesh.faces, frags, derivatives=True, attr_faces=mesh.uv_faces)
-        return uv, dx, dy, frags.mask.unsqueeze(1)
-
-    uv, dx, dy, mask1 = lookup(res)
-    uv_ss, masks = {}, {}
-    for n in tuple(ss_rates) + (16,):
-        u, _, _, m = lookup(res * n)
-        uv_ss[n], masks[n] = u, m
-    wrap = ("clamp", "clamp")
-    ref = _ss_reference(tex, uv_ss.pop(16), wrap)
-    return Scene(f"spot-{dist:g}", tex, wrap, uv, dx, dy, uv_ss, ref, _full_coverage(masks, mask1))
-
-
-def build_scenes(res: int, which: str = "all", ss_rates=(2, 4, 8)) -> list[Scene]:
-    """Every scene of the experiment (``which``: "all", "plane", "sphere" or "spot").
-
-    ``ss_rates``: the supersampled uv the peers need (none for difftex's filters alone).
-    """
-    scenes: list[Scene] = []
-    if which in ("all", "plane"):
-        for kind in ("checker", "spot"):
-            scenes += [plane_scene(p, kind, res, ss_rates) for p in PITCHES]
-    if which in ("all", "sphere"):
-        scenes += [sphere_scene(m, res, ss_rates) for m in SPHERE_MINIFICATION]
-    if which in ("all", "spot"):
-        scenes += [spot_scene(d, e, res, ss_rates) for d, e in SPOT_VIEWS]
-    return scenes
-
 
 # --------------------------------------------------------------------------
 # methods
 # --------------------------------------------------------------------------
-
-
-def _pad_and_grid(tex: Tensor, uv: Tensor, wrap: tuple[str, str]) -> tuple[Tensor, Tensor]:
-    """Texture and grid_sample grid that read it like difftex's wrap modes (with padding_mode="border").
-
-    Clamp is grid_sample's "border" as it is; repeat needs a one-texel
-    circular pad along that axis and uv folded into [0, 1) (then exact).
-    The grid is in the (padded) texture's normalized coordinates,
-    align_corners=False.
-    """
-    H, W = tex.shape[-2:]
-    pu, pv = (1 if w == "repeat" else 0 for w in wrap)
-    padded = F.pad(tex, (pu, pu, pv, pv), mode="circular") if pu or pv else tex
-    fold = torch.stack([uv[..., i] - torch.floor(uv[..., i]) if wrap[i] == "repeat" else uv[..., i]
-                        for i in range(2)], -1)
-    grid = (fold * uv.new_tensor([W, H]) + uv.new_tensor([pu, pv])) / uv.new_tensor([W + 2 * pu, H + 2 * pv]) * 2 - 1
-    return padded, grid
-
-
-def grid_sample_lookup(tex: Tensor, uv: Tensor, wrap: tuple[str, str]) -> Tensor:
-    """F.grid_sample bilinear with difftex's wrap, [1, C, h, w]."""
-    padded, grid = _pad_and_grid(tex, uv, wrap)
-    return F.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=False)
-
-
-def kornia_lookup(tex: Tensor, uv: Tensor, wrap: tuple[str, str]) -> Tensor:
-    """kornia.geometry.transform.remap with normalized coordinates, align_corners=False."""
-    from kornia.geometry.transform import remap
-    padded, grid = _pad_and_grid(tex, uv, wrap)
-    return remap(padded, grid[..., 0], grid[..., 1], mode="bilinear", padding_mode="border",
-                 align_corners=False, normalized_coordinates=True)
 
 
 def method_names(ss_rates=(2, 4, 8)) -> list[str]:
@@ -483,13 +127,6 @@ def make_method(name: str, scene: Scene, tex: Tensor, uv: Tensor, uv_ss: dict[in
 # --------------------------------------------------------------------------
 # metrics
 # --------------------------------------------------------------------------
-
-
-def masked_psnr(img: Tensor, ref: Tensor, mask: Tensor) -> float:
-    """PSNR (peak 1) over the scored pixels, all channels."""
-    m = mask.expand_as(img)
-    ref = ref.expand_as(img)
-    return _psnr(torch.where(m, img, ref), torch.where(m, ref, torch.full_like(ref, float("nan"))))
 
 
 def flip_error(img: Tensor, ref: Tensor, mask: Tensor) -> Optional[float]:
@@ -530,32 +167,31 @@ def run_scene(scene: Scene, methods: list[str], repeats: int) -> tuple[list[dict
     for m, fn in fns.items():
         with torch.no_grad():
             images[m] = fn()
-    times: dict[str, tuple[list[float], list[float]]] = {m: ([], []) for m in methods}
-    order = list(fns)
-    rng = random.Random(0)
-    for rep in range(repeats + 1):  # round 0 warms up (allocator, lazy imports) and is dropped
-        # A new order each round: a method timed right after a heavy one (EWA, 8x8) finds its
-        # data evicted from the caches (measured: auto, which followed EWA, read up to 1.37x
-        # anisotropic-16's forward on the small scenes, against 1.02x when timed alone).
-        rng.shuffle(order)
-        for m in order:
-            fn = fns[m]
-            t0 = time.perf_counter()
+
+    def forward(fn):
+        def run():
             with torch.no_grad():
                 fn()
-            t1 = time.perf_counter()
+        return run
+
+    def forward_backward(fn):
+        def run():
             for leaf in leaves:
                 leaf.grad = None
             fn().sum().backward()
-            t2 = time.perf_counter()
-            if rep:
-                times[m][0].append((t1 - t0) * 1e3)
-                times[m][1].append((t2 - t1) * 1e3)
-    for m in methods:
+        return run
+
+    # Shuffled rounds: a method timed right after a heavy one (EWA, 8x8) finds its data
+    # evicted from the caches (measured: auto, which followed EWA, read up to 1.37x
+    # anisotropic-16's forward on the small scenes, against 1.02x when timed alone).
+    timed = time_interleaved([forward(fns[m]) for m in methods] + [forward_backward(fns[m]) for m in methods],
+                             repeats, shuffle=True)
+    fwd, fwdbwd = timed[:len(methods)], timed[len(methods):]
+    for i, m in enumerate(methods):
         img = images[m]
-        rows.append(dict(scene=scene.name, method=m, psnr=masked_psnr(img, scene.reference, scene.mask),
+        rows.append(dict(scene=scene.name, method=m, psnr=psnr(img, scene.reference, mask=scene.mask),
                          flip=flip_error(img, scene.reference, scene.mask),
-                         fwd_ms=statistics.median(times[m][0]), fwdbwd_ms=statistics.median(times[m][1])))
+                         fwd_ms=fwd[i].median, fwdbwd_ms=fwdbwd[i].median))
     return rows, images
 
 
@@ -723,7 +359,7 @@ def summary_markdown(rows: list[dict], methods: list[str], meta: str) -> str:
 
 
 # The part of docs/speed_vs_accuracy.md that --docs rewrites; the prose around it is kept.
-_DOC_START = "<!-- generated by experiments/speed_vs_accuracy.py --docs: start -->"
+_DOC_START = "<!-- generated by experiments/studies/speed_vs_accuracy.py --docs: start -->"
 _DOC_END = "<!-- generated: end -->"
 
 

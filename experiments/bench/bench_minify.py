@@ -1,7 +1,7 @@
 """Minification benchmark: speed and accuracy of the mip filters on the grazing-plane scene.
 
 Scene (the issue's): 256 x 256 image of a ground plane, camera 1 unit up,
-looking 20 degrees down (``difftex.scenes.grazing_plane``); 1024 x 1024 x 3
+looking 20 degrees down (``difftex.testing.grazing_plane``); 1024 x 1024 x 3
 checkerboard-plus-noise texture, repeat. Accuracy is PSNR against a 16 x 16
 supersampled bilinear render (box filtered). Speed is the median over
 repeats of the forward pass and of forward + backward (gradients to the
@@ -11,46 +11,33 @@ cost is part of every training step).
 
 Prints a markdown table and writes it to docs/bench_minify.md.
 
-    python experiments/bench_minify.py [--threads 1] [--repeats 9] [--out docs/bench_minify.md]
+    python -m experiments.bench.bench_minify [--threads 1] [--repeats 9] [--out docs/bench_minify.md]
 """
 from __future__ import annotations
 
 import argparse
 import os
 import platform
-import statistics
-import sys
-import time
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import difftex  # noqa: E402
-from difftex.metrics import psnr  # noqa: E402
-from difftex.testing.scenes import checker_noise_texture, grazing_plane  # noqa: E402
+import difftex
+from difftex.metrics import psnr
+from difftex.testing import checker_noise_texture, grazing_plane, grid_sample_lookup, supersampled, time_interleaved
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _timed_pair(fn, base, repeats: int) -> tuple[float, float, float]:
-    """Median ms of ``fn()`` and of ``base()``, run alternately, and the median of their per-pair ratios.
+    """Median ms of ``fn()`` and of ``base()``, timed alternately, and the median of their per-round ratios.
 
     Alternating keeps both under the same machine load, which on a shared
     CPU drifts by 2-3x within a minute; the ratio is the steadier figure.
     """
-    fn()
-    base()
-    ts, tb, ratios = [], [], []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        base()
-        t1 = time.perf_counter()
-        fn()
-        t2 = time.perf_counter()
-        tb.append((t1 - t0) * 1e3)
-        ts.append((t2 - t1) * 1e3)
-        ratios.append((t2 - t1) / (t1 - t0))
-    return statistics.median(ts), statistics.median(tb), statistics.median(ratios)
+    tb, ts = time_interleaved([base, fn], repeats)
+    return ts.median, tb.median, ts.ratio_to(tb)
 
 
 def _no_grad(fn) -> None:
@@ -71,15 +58,6 @@ def _torch_path(fn):
     return run
 
 
-def _grid_sample_repeat(tex: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """grid_sample bilinear with exact repeat: 1-texel circular pad + folded uv."""
-    H, W = tex.shape[-2:]
-    padded = F.pad(tex, (1, 1, 1, 1), mode="circular")
-    f = uv - torch.floor(uv)
-    grid = (f * uv.new_tensor([W, H]) + 1) / uv.new_tensor([W + 2, H + 2]) * 2 - 1
-    return F.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=False)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1: steadiest on a "
@@ -87,7 +65,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=9)
     ap.add_argument("--res", type=int, default=256)
     ap.add_argument("--tex", type=int, default=1024)
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "bench_minify.md"))
+    ap.add_argument("--out", default=str(ROOT / "docs" / "bench_minify.md"))
     args = ap.parse_args()
     if args.threads > 0:
         torch.set_num_threads(args.threads)
@@ -95,7 +73,7 @@ def main() -> None:
 
     tex0 = checker_noise_texture(args.tex)
     uv0, dx, dy = grazing_plane(args.res, 20.0, 1.0)
-    ref = F.avg_pool2d(difftex.sample(tex0, grazing_plane(args.res, 20.0, 1.0, ss=16)[0]), 16)
+    ref = supersampled(tex0, grazing_plane(args.res, 20.0, 1.0, ss=16)[0], 16, "repeat")
 
     tex = tex0.clone().requires_grad_(True)
     uv = uv0.clone().requires_grad_(True)
@@ -114,9 +92,9 @@ def main() -> None:
     rows = []  # (name, output fn)
     rows.append(("grid_sample bilinear", gs))
     rows.append(("grid_sample bilinear, 4x4 supersampled",
-                 lambda: F.avg_pool2d(_grid_sample_repeat(tex, uv4), 4)))
+                 lambda: F.avg_pool2d(grid_sample_lookup(tex, uv4, "repeat"), 4)))
     rows.append(("grid_sample bilinear, 8x8 supersampled",
-                 lambda: F.avg_pool2d(_grid_sample_repeat(tex, uv8), 8)))
+                 lambda: F.avg_pool2d(grid_sample_lookup(tex, uv8, "repeat"), 8)))
     rows.append(("difftex bilinear", lambda: difftex.sample(tex, uv, filter="bilinear")))
     for name, kw in (("nearest-mip", {}), ("trilinear", {}), ("anisotropic", {"max_aniso": 2}),
                      ("anisotropic", {"max_aniso": 4}),
@@ -150,7 +128,7 @@ def main() -> None:
     for label, fn in rows:
         with torch.no_grad():
             out = fn()
-        score = psnr(_grid_sample_repeat(tex0, uv0) if label == "grid_sample bilinear" else out, ref)
+        score = psnr(grid_sample_lookup(tex0, uv0, "repeat") if label == "grid_sample bilinear" else out, ref)
         reps = args.repeats if "ewa" not in label and "8x8" not in label else max(3, args.repeats // 3)
 
         def fwd():

@@ -6,18 +6,17 @@ ours and of grid_sample with the same filter and the ratio ours / grid_sample
 as a markdown table. The uv is a rotated, scaled view of the texture (the
 coherent access pattern of a render); ``--uv random`` gives the worst case.
 
-    python experiments/bench_sample.py [--device cuda] [--uv random] [--out docs/bench_sample.md]
+    python -m experiments.bench.bench_sample [--device cuda] [--uv random] [--out docs/bench_sample.md]
 """
 from __future__ import annotations
 
 import argparse
 import math
-import time
 
 import torch
-import torch.nn.functional as F
 
 import difftex
+from difftex.testing import grid_sample_lookup, time_interleaved
 
 GS = {"nearest": "nearest", "bilinear": "bilinear", "bicubic": "bicubic"}
 
@@ -38,27 +37,6 @@ def make_uv(B: int, res: int, pattern: str, device: str, seed: int = 0) -> torch
     return torch.stack(uvs).to(device)
 
 
-def _sync(device: str) -> None:
-    if str(device).startswith("cuda"):
-        torch.cuda.synchronize()
-
-
-def median_ms(fns, device: str, reps: int) -> list[float]:
-    """Median ms of each function, run interleaved so that load spikes on a
-    shared machine hit all of them alike."""
-    for fn in fns:
-        fn()  # warm-up
-    times = [[] for _ in fns]
-    for _ in range(reps):
-        for fn, ts in zip(fns, times):
-            _sync(device)
-            t = time.perf_counter()
-            fn()
-            _sync(device)
-            ts.append((time.perf_counter() - t) * 1e3)
-    return [sorted(ts)[len(ts) // 2] for ts in times]
-
-
 def run(device: str, pattern: str, reps: int, filters, batches) -> list[str]:
     rows = ["| filter | B | pass | ours ms | grid_sample ms | ours / grid_sample |", "|---|---|---|---|---|---|"]
     for B in batches:
@@ -66,8 +44,7 @@ def run(device: str, pattern: str, reps: int, filters, batches) -> list[str]:
         uv = make_uv(B, 512, pattern, device)
         for filt in filters:
             ours = lambda t, u: difftex.sample(t, u, filter=filt, wrap="clamp")
-            peer = lambda t, u: F.grid_sample(t.expand(u.shape[0], -1, -1, -1), 2 * u - 1, mode=GS[filt],
-                                              padding_mode="border", align_corners=False)
+            peer = lambda t, u: grid_sample_lookup(t, u, "clamp", mode=GS[filt])
             for label, grad in (("forward", False), ("forward+backward", True)):
                 def step_of(f):
                     t = tex.clone().requires_grad_(grad)
@@ -79,7 +56,7 @@ def run(device: str, pattern: str, reps: int, filters, batches) -> list[str]:
                             out.backward(torch.ones_like(out))
                     return step
                 with torch.set_grad_enabled(grad):
-                    a, b = median_ms([step_of(ours), step_of(peer)], device, reps)
+                    a, b = (t.median for t in time_interleaved([step_of(ours), step_of(peer)], reps, device=device))
                 rows.append(f"| {filt} | {B} | {label} | {a:.1f} | {b:.1f} | {a / b:.2f} |")
                 print(rows[-1], flush=True)
     return rows

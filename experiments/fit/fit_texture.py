@@ -12,7 +12,7 @@ Writes to ``--out``: metrics.json ({"filter", "iters", "texture_psnr",
 views), texture.png (fitted | true | seen-texel mask), curves.png (loss and
 texture PSNR).
 
-    python experiments/fit_texture.py [--filter trilinear] [--iters 300] [--res 128] [--views 48]
+    python -m experiments.fit.fit_texture [--filter trilinear] [--iters 300] [--res 128] [--views 48]
 """
 from __future__ import annotations
 
@@ -26,8 +26,9 @@ import torch
 from tqdm import tqdm
 
 import difftex
-from difftex import camera
-from difftex import Fragments
+from difftex import Fragments, camera
+from difftex.metrics import psnr
+from difftex.testing import spot_mesh, spot_texture
 
 FILTERS = ("bilinear", "trilinear", "anisotropic", "ewa", "auto")
 
@@ -49,16 +50,6 @@ def random_views(n: int, seed: int, dist_range=(2.0, 16.0), fov_deg: float = 40.
 def select(frags: Fragments, idx: torch.Tensor) -> Fragments:
     """The fragments of the views ``idx``."""
     return Fragments(*(getattr(frags, f)[idx] for f in ("tri_id", "bary", "depth", "bary_dx", "bary_dy")))
-
-
-def psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> float:
-    err = (a - b) ** 2
-    if mask is not None:
-        mask = mask.expand_as(err)
-        mse = err[mask].mean()
-    else:
-        mse = err.mean()
-    return float(10 * torch.log10(1.0 / mse.clamp_min(1e-12)))
 
 
 def seen_texels(model: difftex.TexturedMesh, mvp: torch.Tensor, res: int) -> torch.Tensor:
@@ -83,9 +74,8 @@ def fit(filter: str = "trilinear", iters: int = 300, res: int = 128, views: int 
         eval_views: int = 16, progress: bool = True, save: bool = True) -> dict:
     """Run one fit and return its metrics (also written to ``out``/metrics.json when ``save``)."""
     torch.manual_seed(seed)
-    root = Path(__file__).resolve().parent.parent / "data" / "spot"
-    mesh = difftex.load_mesh(root / "spot_triangulated.obj")
-    true_tex = difftex.load_texture(root / "spot_texture.png")
+    mesh = spot_mesh()
+    true_tex = spot_texture()
     mvp = random_views(views, seed)
     difftex.texture.native.load()  # the native CPU kernel's first-use build stays out of the timings
 
@@ -118,7 +108,7 @@ def fit(filter: str = "trilinear", iters: int = 300, res: int = 128, views: int 
         with torch.no_grad():
             model.texture.clamp_(0, 1)
         if it % 10 == 0 or it == iters - 1:
-            tp = psnr(model.texture.detach(), true_tex, seen)
+            tp = psnr(model.texture.detach(), true_tex, mask=seen)
             curve["iter"].append(it)
             curve["loss"].append(loss.item())
             curve["texture_psnr"].append(tp)
@@ -129,8 +119,8 @@ def fit(filter: str = "trilinear", iters: int = 300, res: int = 128, views: int 
     metrics = {
         "filter": filter,
         "iters": iters,
-        "texture_psnr": psnr(model.texture.detach(), true_tex, seen),
-        "initial_texture_psnr": psnr(init, true_tex, seen),
+        "texture_psnr": psnr(model.texture.detach(), true_tex, mask=seen),
+        "initial_texture_psnr": psnr(init, true_tex, mask=seen),
         "image_psnr": psnr(render_all(model, eval_frags, batch), eval_targets),
         "train_image_psnr": psnr(fits, targets),
         "seconds": time.perf_counter() - t0,

@@ -15,7 +15,7 @@ Writes to ``--out``: metrics.json ({"uv_error_before", "uv_error_after"}
 in texels, "ratio", "image_psnr", "seconds", ...) and uv.png (uv layout
 before / after over the texture, and target / start / fit renders).
 
-    python experiments/fit_uv.py [--iters 150] [--res 128] [--views 24] [--joint]
+    python -m experiments.fit.fit_uv [--iters 150] [--res 128] [--views 24] [--joint]
 """
 from __future__ import annotations
 
@@ -31,11 +31,9 @@ from tqdm import tqdm
 
 import difftex
 from difftex.mapping import texture_matrix, uv_transform
-
-try:  # run as a script or imported by the tests
-    from fit_texture import psnr, random_views, render_all, select
-except ImportError:  # pragma: no cover
-    from experiments.fit_texture import psnr, random_views, render_all, select
+from difftex.metrics import psnr
+from difftex.testing import spot_mesh, spot_texture
+from experiments.fit.fit_texture import random_views, render_all, select
 
 
 def uv_laplacian(uv_faces: torch.Tensor, count: int):
@@ -70,9 +68,8 @@ def fit_uv(iters: int = 150, res: int = 128, views: int = 24, batch: int = 8, lr
            seed: int = 0, out: str | Path = "results/fit_uv", progress: bool = True, save: bool = True) -> dict:
     """Run one uv fit; returns (and with ``save`` writes) its metrics."""
     torch.manual_seed(seed)
-    root = Path(__file__).resolve().parent.parent / "data" / "spot"
-    mesh = difftex.load_mesh(root / "spot_triangulated.obj")
-    true_tex = difftex.load_texture(root / "spot_texture.png")
+    mesh = spot_mesh()
+    true_tex = spot_texture()
     size = true_tex.shape[-1]
     mvp = random_views(views, seed, dist_range=(1.8, 4.0))
 

@@ -1,6 +1,6 @@
 """filter="auto" against anisotropic 16 and trilinear: PSNR, time and taps, and auto's tolerance sweep.
 
-Scenes and references are those of experiments/speed_vs_accuracy.py (17
+Scenes and references are the speed-vs-accuracy suite, :mod:`difftex.testing.suite` (17
 scenes: planes from head-on to 5 degrees with the closed-form checker and
 the spot texture, the spherical-mapped sphere from magnified to 100x, spot
 from three distances; ``--res`` pixels a side, 128 by default).
@@ -14,35 +14,32 @@ anisotropic's taps at several tolerances.
 
 Prints markdown tables and writes them to docs/auto_filter.md.
 
-    python experiments/bench_auto.py [--res 128] [--repeats 7] [--out docs/auto_filter.md]
+    python -m experiments.bench.bench_auto [--res 128] [--repeats 7] [--out docs/auto_filter.md]
 """
 from __future__ import annotations
 
 import argparse
 import platform
-import statistics
-import sys
-import time
 from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "experiments"))
-import difftex  # noqa: E402
-from difftex.texture.filters.anisotropic import tap_count  # noqa: E402
-from difftex.texture.filters.auto import auto_tap_count  # noqa: E402
-from difftex.texture.lod import ellipse, footprint  # noqa: E402
-from difftex.texture.options import DEFAULT_TOLERANCE  # noqa: E402
-from speed_vs_accuracy import build_scenes, masked_psnr  # noqa: E402
+import difftex
+from difftex.metrics import psnr
+from difftex.testing import build_scenes, time_interleaved
+from difftex.texture.filters.anisotropic import tap_count
+from difftex.texture.filters.auto import auto_tap_count
+from difftex.texture.lod import ellipse, footprint
+from difftex.texture.options import DEFAULT_TOLERANCE
+
+ROOT = Path(__file__).resolve().parents[2]
 
 SWEEP = (0.0, DEFAULT_TOLERANCE, 0.25, 0.5, 1.0)
 FILTERS = (("trilinear", {"filter": "trilinear"}), ("anisotropic 16", {"filter": "anisotropic", "max_aniso": 16}),
            ("auto", {"filter": "auto"}))
 
 NOTES = """
-## How auto chooses (difftex/filters/auto.py)
+## How auto chooses (difftex/texture/filters/auto.py)
 
 Per pixel, with the footprint's axes from `difftex.lod.ellipse` (level-0 texels, times `2^lod_bias`):
 `N_a = min(ceil(major / max(minor, 1/2)), max_aniso)` and `N = ceil(N_a / (1 + tolerance))` trilinear taps
@@ -57,7 +54,7 @@ with 0 auto equals anisotropic wherever the minor axis is at least half a texel.
 * Within 0.5 dB of anisotropic 16 on every scene above (worst -0.33 dB, the 5-degree spot plane), never
   more taps. On these scenes that leaves little to save: anisotropic's taps are nearly all needed for its
   accuracy, so auto takes 0-3 % fewer taps and its time is anisotropic's within this machine's noise
-  (forward+backward in speed_vs_accuracy.py's runs: median 1.00-1.02x; single scenes 0.90-1.36x, the outliers on different scenes from run to run). It saves where footprints are magnified below half a texel (one read instead of anisotropic's two) or round:
+  (forward+backward in experiments/studies/speed_vs_accuracy.py's runs: median 1.00-1.02x; single scenes 0.90-1.36x, the outliers on different scenes from run to run). It saves where footprints are magnified below half a texel (one read instead of anisotropic's two) or round:
   on a sphere magnified 4x (not in the table) auto reads half of anisotropic's taps, 56.7 vs 64.3 dB.
 * What the first version gave away: with tolerance 0.25 it took 7-10 % fewer taps on grazing planes but
   fell 2.1 dB under anisotropic 16 on the closed-form checker plane at 5 degrees (1.2 dB on the spot
@@ -105,16 +102,10 @@ def main() -> None:
     rows, sweep = [], []
     with torch.no_grad():
         for scene in build_scenes(args.res, ss_rates=()):
-            score = lambda out: masked_psnr(out, scene.reference, scene.mask)
-            times = {name: [] for name, _ in FILTERS}
-            for r in range(args.repeats + 1):
-                for name, kw in FILTERS:
-                    t0 = time.perf_counter()
-                    lookup(scene, **kw)
-                    if r:
-                        times[name].append((time.perf_counter() - t0) * 1e3)
-            row = {name: (score(lookup(scene, **kw)), statistics.median(times[name]), taps(scene, name))
-                   for name, kw in FILTERS}
+            score = lambda out: psnr(out, scene.reference, mask=scene.mask)
+            timings = time_interleaved([lambda kw=kw: lookup(scene, **kw) for _, kw in FILTERS], args.repeats)
+            row = {name: (score(lookup(scene, **kw)), t.median, taps(scene, name))
+                   for (name, kw), t in zip(FILTERS, timings)}
             rows.append((scene.name, row))
             a16, n16 = row["anisotropic 16"][0], row["anisotropic 16"][2]
             sweep.append((scene.name, [(score(lookup(scene, filter="auto", tolerance=t)) - a16,
@@ -123,8 +114,8 @@ def main() -> None:
     lines = [
         "# filter=\"auto\" vs anisotropic 16 vs trilinear",
         "",
-        f"Generated by `experiments/bench_auto.py` (auto tolerance {DEFAULT_TOLERANCE}, the default) on the "
-        f"scenes of experiments/speed_vs_accuracy.py at {args.res}x{args.res}. PSNR in dB against the scene's "
+        f"Generated by `python -m experiments.bench.bench_auto` (auto tolerance {DEFAULT_TOLERANCE}, the default) on the "
+        f"scenes of experiments/studies/speed_vs_accuracy.py at {args.res}x{args.res}. PSNR in dB against the scene's "
         "reference (closed form for the checker planes, else 16x16 supersampled bilinear) over its scored "
         f"pixels; forward time in ms (median of {args.repeats}, the three filters interleaved, 1 thread, pyramid "
         f"built inside the timed call; torch {torch.__version__}, {platform.machine()}, shared 2-core machine, so "

@@ -1,10 +1,10 @@
 """Where texture filters fail: sweeps of every difftex filter into the hard cases, with bounds.
 
 Sweeps (each a function returning plain numbers, shared by this script and
-tests/test_stability.py, which runs them at small sizes and asserts the
+tests/experiments/test_stability.py, which runs them at small sizes and asserts the
 bounds stated in docs/stability.md):
 
-* :func:`sweep_view_angle`: the grazing plane (:func:`difftex.scenes.grazing_plane`)
+* :func:`sweep_view_angle`: the grazing plane (:func:`difftex.testing.grazing_plane`)
   from head-on to 89.9 degrees off the normal, PSNR against 16x16
   supersampled bilinear;
 * :func:`sweep_minification`: a head-on plane minified 0.5x to 1000x, error
@@ -28,17 +28,17 @@ positive and sum to one, whatever the footprint), and the per-pixel uv /
 derivative gradient over ``C * range * max(H, W)`` (the steepest slope a
 texture of that value range can have, per uv unit).
 
-Writes docs/images/stability.png (one panel per sweep) and a markdown table
-(``--out``, default results/stability/stability.md).
+Writes to ``--out`` (default results/stability) stability.png (one panel per
+sweep) and stability.md (a markdown table); ``--docs`` copies the chart to
+docs/images/stability.png.
 
-    python experiments/stability.py [--threads 1] [--out results/stability]
+    python -m experiments.studies.stability [--threads 1] [--out results/stability]
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import math
-import sys
 import time
 from pathlib import Path
 from typing import Optional, Sequence
@@ -47,13 +47,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "experiments"))
-import difftex  # noqa: E402
-from difftex.metrics import psnr  # noqa: E402
-from difftex.testing.scenes import checker_noise_texture, grazing_plane  # noqa: E402
-import speed_vs_accuracy as sva  # noqa: E402
+import difftex
+from difftex.metrics import psnr
+from difftex.testing import checker_noise_texture, grazing_plane, icosphere, sphere_mvp, sphere_uv, supersampled
+
+ROOT = Path(__file__).resolve().parents[2]
 
 _sample_mod = importlib.import_module("difftex.texture.options")
 FILTERS: tuple[str, ...] = tuple(_sample_mod.FILTERS)
@@ -120,7 +118,7 @@ def check_lookup(texture: Tensor, uv: Tensor, uv_dx: Optional[Tensor], uv_dy: Op
         e = (out.detach() - ref)[m].abs()
         res["max_err"] = float(e.max()) if e.numel() else 0.0
         res["mean_err"] = float(e.mean()) if e.numel() else 0.0
-        res["psnr"] = psnr(torch.where(m, out.detach(), ref), torch.where(m, ref, torch.full_like(ref, float("nan"))))
+        res["psnr"] = psnr(out.detach(), ref, mask=m)
     return res
 
 
@@ -201,7 +199,7 @@ def sweep_view_angle(angles: Sequence[float] = (0, 45, 70, 80, 85, 88, 89, 89.5,
         pitch = 90.0 - a
         fov = min(36.0, pitch)
         uv, dx, dy = grazing_plane(res, pitch, 1.0, fov_deg=fov)
-        ref = sva._ss_reference(tex, grazing_plane(res, pitch, 1.0, fov_deg=fov, ss=16)[0], ("repeat", "repeat"))
+        ref = supersampled(tex, grazing_plane(res, pitch, 1.0, fov_deg=fov, ss=16)[0], 16, "repeat")
         for f in filters:
             r = check_lookup(tex, uv, dx, dy, f, "repeat", reference=ref)
             r.pop("out")
@@ -272,12 +270,6 @@ def sweep_uv_offset(offsets: Sequence[float] = (0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6)
     return rows
 
 
-def _ss_ref(tex: Tensor, uv_ss: Tensor, wrap, ss: int) -> Tensor:
-    """Box average of ss x ss bilinear level-0 samples a pixel."""
-    with torch.no_grad():
-        return F.avg_pool2d(difftex.sample(tex, uv_ss, filter="bilinear", wrap=wrap), ss)
-
-
 SEAM_VIEW = (-1.0, 0.0, 0.8)  # eye direction: the seam (the -x meridian) runs down the image centre, +z pole at top
 
 
@@ -298,12 +290,12 @@ def sphere_seam(res: int = 64, tex_size: int = 256, minification: float = 2.0,
     # check edge there would raise every filter's error on the seam pixels
     # for a reason that has nothing to do with the seam.
     tex = torch.roll(checker_noise_texture(tex_size, checks=8), tex_size // 16, dims=-1)
-    verts, faces = sva.icosphere(4)
-    mvp = sva.sphere_mvp(minification, res, tex_size, direction=SEAM_VIEW)
-    uv16, _, _, m16 = sva.sphere_uv(mvp, res * ss, verts, faces)
+    verts, faces = icosphere(4)
+    mvp = sphere_mvp(minification, res, tex_size, direction=SEAM_VIEW)
+    uv16, _, _, m16 = sphere_uv(mvp, res * ss, verts, faces)
     wrap = ("repeat", "clamp")
-    ref = _ss_ref(tex, uv16, wrap, ss)
-    base = sva.sphere_uv(mvp, res, verts, faces)
+    ref = supersampled(tex, uv16, ss, wrap)
+    base = sphere_uv(mvp, res, verts, faces)
     out: dict = {"levels": difftex.mipmap(tex).__len__()}
     for kind in ("analytic", "finite"):
         uv, dx, dy, mask = base
@@ -333,10 +325,10 @@ def sphere_seam(res: int = 64, tex_size: int = 256, minification: float = 2.0,
     out["reference"] = ref
     # The pole: look straight down the +z axis at 2x minification; the
     # pixel at the pole has r < EPS and zero derivatives (level 0).
-    pmvp = sva.sphere_mvp(minification, res + 1, tex_size, direction=(0.0, 1e-3, 1.0))
-    uv, dx, dy, mask = sva.sphere_uv(pmvp, res + 1, verts, faces)
-    uvp16, _, _, mp16 = sva.sphere_uv(pmvp, (res + 1) * ss, verts, faces)
-    pref = _ss_ref(tex, uvp16, wrap, ss)
+    pmvp = sphere_mvp(minification, res + 1, tex_size, direction=(0.0, 1e-3, 1.0))
+    uv, dx, dy, mask = sphere_uv(pmvp, res + 1, verts, faces)
+    uvp16, _, _, mp16 = sphere_uv(pmvp, (res + 1) * ss, verts, faces)
+    pref = supersampled(tex, uvp16, ss, wrap)
     pfull = mask & (F.avg_pool2d(mp16.float(), ss) > 1 - 1e-6)
     out["pole"] = {}
     for f in filters:

@@ -1,0 +1,93 @@
+"""The timing harness of the benchmarks: functions timed interleaved, medians and spread.
+
+On a shared machine the load drifts by 2-3x within a minute, so functions
+that are compared are timed in rounds, each round calling every function
+once (in a new random order when ``shuffle``, so that none always runs
+after one that evicts the caches): a load spike hits them alike, and the
+per-round ratio of two functions is steadier than the ratio of their
+medians. Between timed calls the harness sleeps ``pause`` seconds: after a
+call torch's intra-op worker threads spin for 10-20 ms on a 2-core machine,
+which would otherwise be charged to the next function.
+"""
+from __future__ import annotations
+
+import random
+import statistics
+import time
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence
+
+import torch
+
+
+@dataclass(frozen=True)
+class Timing:
+    """Wall-clock times of one function over the timed rounds, in ms (round order)."""
+
+    times_ms: tuple[float, ...]
+
+    @property
+    def median(self) -> float:
+        return statistics.median(self.times_ms)
+
+    @property
+    def min(self) -> float:
+        return min(self.times_ms)
+
+    @property
+    def spread(self) -> float:
+        """Interquartile range in ms (0 for fewer than two rounds)."""
+        if len(self.times_ms) < 2:
+            return 0.0
+        q = statistics.quantiles(self.times_ms, n=4, method="inclusive")
+        return q[2] - q[0]
+
+    def ratio_to(self, other: "Timing") -> float:
+        """Median over the rounds of this time / ``other``'s in the same round (both from one harness call)."""
+        if len(other.times_ms) != len(self.times_ms):
+            raise ValueError(f"Timing.ratio_to: other has {len(other.times_ms)} rounds, expected "
+                             f"{len(self.times_ms)} (time both in one time_interleaved call)")
+        return statistics.median(a / b for a, b in zip(self.times_ms, other.times_ms))
+
+
+def _synchronize(device: Optional[torch.device | str]) -> None:
+    if device is not None and torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def time_interleaved(fns: Sequence[Callable[[], object]], repeats: int = 9, *, warmup: int = 1,
+                     pause: float = 0.02, shuffle: bool = False, seed: int = 0,
+                     device: Optional[torch.device | str] = None) -> list[Timing]:
+    """Time each of ``fns`` ``repeats`` times, interleaved in rounds; one :class:`Timing` per function.
+
+    Args:
+        fns: callables without arguments (what they return is dropped).
+        repeats: timed rounds (>= 1).
+        warmup: untimed rounds first (allocator, lazy imports, kernel builds).
+        pause: seconds slept before every timed call (see the module doc).
+        shuffle: a new order of ``fns`` every round (seeded by ``seed``).
+        device: a CUDA device is synchronized around every timed call, so
+            that the time is the kernels' and not their launch's.
+
+    Raises:
+        ValueError: ``repeats`` < 1, ``warmup`` or ``pause`` < 0, or no functions.
+    """
+    if not fns or repeats < 1 or warmup < 0 or pause < 0:
+        raise ValueError(f"time_interleaved: expected functions, repeats >= 1, warmup >= 0 and pause >= 0, got "
+                         f"{len(fns)} functions, repeats={repeats}, warmup={warmup}, pause={pause}")
+    rng = random.Random(seed)
+    order = list(range(len(fns)))
+    times: list[list[float]] = [[] for _ in fns]
+    for r in range(warmup + repeats):
+        if shuffle:
+            rng.shuffle(order)
+        for i in order:
+            if pause and r >= warmup:
+                time.sleep(pause)
+            _synchronize(device)
+            t = time.perf_counter()
+            fns[i]()
+            _synchronize(device)
+            if r >= warmup:
+                times[i].append((time.perf_counter() - t) * 1e3)
+    return [Timing(tuple(ts)) for ts in times]

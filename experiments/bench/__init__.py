@@ -1,0 +1,1 @@
+"""Speed benchmarks: ``python -m experiments.bench.bench_sample`` (bench_minify, bench_raster, bench_auto)."""
