@@ -104,7 +104,7 @@ def test_fast_path_matches_the_reference(case, impl):
                                   FILTERS[i % len(FILTERS)] != "ewa"])
 def test_kernel_front_end_matches_the_reference(case):
     # Derivatives and bias without gradients: the bilinear-tap mip filters take
-    # the native kernel's footprint front end (test_native.py checks that they do).
+    # the native kernel's footprint front end (tests/texture/native checks that they do).
     _compare(_config(case), "native", frozen=True)
 
 

@@ -9,7 +9,7 @@ SEPARABLE = {"nearest": "nearest", "bilinear": "linear", "bicubic": "cubic"}
 # Filters that read a mip pyramid and need uv_dx / uv_dy.
 MIP_FILTERS = ("trilinear", "nearest-mip", "anisotropic", "ewa", "auto")
 # Default of ``tolerance`` ("auto"): within 0.5 dB of anisotropic 16 on every
-# scene of experiments/speed_vs_accuracy.py (filters/auto.py).
+# scene of experiments/studies/speed_vs_accuracy.py (filters/auto.py).
 DEFAULT_TOLERANCE = 0.1
 # Largest max_aniso. A rank-1 or grazing footprint takes max_aniso taps (EWA:
 # an ellipse max_aniso times longer than wide), so this bounds the work per

@@ -41,7 +41,7 @@ FILTERS = (("trilinear", {"filter": "trilinear"}), ("anisotropic 16", {"filter":
 NOTES = """
 ## How auto chooses (difftex/texture/filters/auto.py)
 
-Per pixel, with the footprint's axes from `difftex.lod.ellipse` (level-0 texels, times `2^lod_bias`):
+Per pixel, with the footprint's axes from `difftex.texture.lod.ellipse` (level-0 texels, times `2^lod_bias`):
 `N_a = min(ceil(major / max(minor, 1/2)), max_aniso)` and `N = ceil(N_a / (1 + tolerance))` trilinear taps
 (`N = N_a` where the axis ratio exceeds max_aniso: those taps are already wider than the minor axis), run
 through the anisotropic filter's own code (`anisotropic_taps` with these N). Pixels whose major axis is

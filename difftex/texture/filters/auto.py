@@ -31,7 +31,7 @@ footprint (``N_a <= 1 + tolerance``) gets one tap, i.e. trilinear at
 footprint is longer than ``max_aniso`` allows, which keeps all
 ``max_aniso`` taps. The default tolerance 0.1 keeps counts up to 10 and
 drops 11-16 by one (measured on the 17 scenes of
-experiments/speed_vs_accuracy.py: within 0.33 dB of anisotropic 16 on
+experiments/studies/speed_vs_accuracy.py: within 0.33 dB of anisotropic 16 on
 every one; 0.25 saved 10 % of the taps on grazing planes but lost up to 2.1
 dB there). So on those scenes auto is anisotropic 16 less 0-3 % of its
 taps; it saves more where footprints are magnified (one read instead of

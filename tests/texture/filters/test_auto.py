@@ -1,4 +1,4 @@
-"""filter="auto" (difftex/filters/auto.py) and difftex.levels_needed (difftex/lod.py)."""
+"""filter="auto" (difftex/texture/filters/auto.py) and difftex.levels_needed (difftex/texture/taps.py)."""
 from __future__ import annotations
 
 import math
