@@ -212,3 +212,13 @@ def test_the_kernel_options_are_filled_by_keyword():
     with pytest.raises(RuntimeError, match="nearest-mip is not an EWA option"):
         k.ewa([tex[0, :, :4, :4].contiguous()], uv[0, 0].contiguous(), torch.zeros(4, 3, dtype=f64)[:3],
               D, D, D, 4, 4, k.ReadOptions(wrap_u=0, wrap_v=0, nearest=True))
+
+
+def test_the_pip_ninja_goes_on_path_where_none_is(monkeypatch, tmp_path):
+    ninja = pytest.importorskip("ninja")
+    monkeypatch.setenv("PATH", str(tmp_path))  # no ninja there
+    native._ninja_on_path()
+    assert native.shutil.which("ninja") is not None
+    assert native.os.environ["PATH"].split(native.os.pathsep) == [ninja.BIN_DIR, str(tmp_path)]
+    native._ninja_on_path()  # found now: PATH left as it is
+    assert native.os.environ["PATH"].split(native.os.pathsep) == [ninja.BIN_DIR, str(tmp_path)]

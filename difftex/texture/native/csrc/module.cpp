@@ -7,6 +7,9 @@
 #include "common.h"
 #include "kernels.h"
 
+#include <array>
+#include <utility>
+
 namespace py = pybind11;
 using namespace difftex;
 
@@ -15,6 +18,25 @@ namespace {
 void check_wrap(int64_t code, const char* name) {
   TORCH_CHECK(code >= REPEAT && code <= BORDER, "mip_read.ReadOptions: ", name, " must be a wrap code 0-3, got ",
               code);
+}
+
+// Binds a struct of four gradient flags, each a keyword argument (default
+// false) and a read-only attribute.
+template <typename T>
+void bind_needs(py::module_& m, const char* name, const char* doc,
+                const std::array<std::pair<const char*, bool T::*>, 4>& flags) {
+  py::class_<T> c(m, name, doc);
+  c.def(py::init([flags](bool a, bool b, bool d, bool e) {
+          T t{};
+          t.*flags[0].second = a;
+          t.*flags[1].second = b;
+          t.*flags[2].second = d;
+          t.*flags[3].second = e;
+          return t;
+        }),
+        py::kw_only(), py::arg(flags[0].first) = false, py::arg(flags[1].first) = false,
+        py::arg(flags[2].first) = false, py::arg(flags[3].first) = false);
+  for (const auto& [field, member] : flags) c.def_readonly(field, member);
 }
 
 }  // namespace
@@ -33,22 +55,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def_readonly("border", &ReadOptions::border)
       .def_readonly("nearest", &ReadOptions::nearest)
       .def_readonly("d_grad", &ReadOptions::d_grad);
-  py::class_<TapNeeds>(m, "TapNeeds", "The gradients the taps' backward computes (all by keyword).")
-      .def(py::init([](bool levels, bool uv, bool D, bool axis) { return TapNeeds{levels, uv, D, axis}; }),
-           py::kw_only(), py::arg("levels") = false, py::arg("uv") = false, py::arg("D") = false,
-           py::arg("axis") = false)
-      .def_readonly("levels", &TapNeeds::levels)
-      .def_readonly("uv", &TapNeeds::uv)
-      .def_readonly("D", &TapNeeds::D)
-      .def_readonly("axis", &TapNeeds::axis);
-  py::class_<EwaNeeds>(m, "EwaNeeds", "The gradients the EWA backward computes (all by keyword).")
-      .def(py::init([](bool levels, bool uv, bool ellipse, bool D) { return EwaNeeds{levels, uv, ellipse, D}; }),
-           py::kw_only(), py::arg("levels") = false, py::arg("uv") = false, py::arg("ellipse") = false,
-           py::arg("D") = false)
-      .def_readonly("levels", &EwaNeeds::levels)
-      .def_readonly("uv", &EwaNeeds::uv)
-      .def_readonly("ellipse", &EwaNeeds::ellipse)
-      .def_readonly("D", &EwaNeeds::D);
+  bind_needs<TapNeeds>(m, "TapNeeds", "The gradients the taps' backward computes (all by keyword).",
+                       {{{"levels", &TapNeeds::levels}, {"uv", &TapNeeds::uv}, {"D", &TapNeeds::D},
+                         {"axis", &TapNeeds::axis}}});
+  bind_needs<EwaNeeds>(m, "EwaNeeds", "The gradients the EWA backward computes (all by keyword).",
+                       {{{"levels", &EwaNeeds::levels}, {"uv", &EwaNeeds::uv}, {"ellipse", &EwaNeeds::ellipse},
+                         {"D", &EwaNeeds::D}}});
 
   m.def("forward", &forward, "mip pyramid read, forward", py::arg("levels"), py::arg("uv"), py::arg("D"),
         py::arg("axis"), py::arg("count"), py::arg("opts"));
