@@ -31,7 +31,7 @@ from .pyramid.mipmap import Mipmap, level_count
 
 # Stands for log2 of a zero / infinite length: far outside any level range,
 # yet finite so that sums with lod_bias stay finite and clamp cleanly.
-_FAR = 1.0e4
+FAR = 1.0e4
 
 
 class Footprint(NamedTuple):
@@ -83,7 +83,7 @@ def _log2_len2(len2: Tensor, fp: Footprint) -> Tensor:
     # log2 is only ever evaluated at positive arguments (1 where masked), so
     # the masked-out pixels get an exact zero gradient instead of 0 * inf.
     v = 0.5 * torch.log2(len2 * ok + (1 - ok)) + fp.log2_scale
-    far = (2 * _mask(fp.inf, len2) - 1) * _FAR
+    far = (2 * _mask(fp.inf, len2) - 1) * FAR
     return v * ok + far * (1 - ok)
 
 
@@ -94,7 +94,7 @@ def log2_length(uv_dx: Tensor, uv_dy: Tensor, height: int, width: int) -> Tensor
     whose square overflows is beyond any pyramid (coarsest level) and one
     whose square underflows (< 1e-19 texels in float32) is below level 0
     unless lod_bias > 60, so the clamped level is the same as with
-    ``footprint``'s scaling. NaN gives level 0 (``-_FAR``), inf the top.
+    ``footprint``'s scaling. NaN gives level 0 (``-FAR``), inf the top.
     """
     size2 = uv_dx.new_tensor([float(width) ** 2, float(height) ** 2])
 
@@ -106,8 +106,8 @@ def log2_length(uv_dx: Tensor, uv_dy: Tensor, height: int, width: int) -> Tensor
     with torch.no_grad():
         raw = len2_of(uv_dx, uv_dy)  # NaN wins over inf (maximum propagates NaN)
         ok = ((raw > 0) & (raw < float("inf"))).to(raw.dtype)
-        # -_FAR for NaN or zero, +_FAR for infinite (or overflowing) lengths.
-        far = (raw.nan_to_num(0.0) > 0).to(raw.dtype) * (2 * _FAR) - _FAR
+        # -FAR for NaN or zero, +FAR for infinite (or overflowing) lengths.
+        far = (raw.nan_to_num(0.0) > 0).to(raw.dtype) * (2 * FAR) - FAR
     if torch.is_grad_enabled() and (uv_dx.requires_grad or uv_dy.requires_grad):
         # Inputs of the masked pixels are zeroed before squaring so that their
         # gradient is an exact 0 rather than 0 * inf; nan_to_num turns the

@@ -39,8 +39,8 @@ def taps(filter: str, dx: Tensor, dy: Tensor, bias: Union[float, Tensor], height
     count None for trilinear / nearest-mip (one tap a point), and None where
     every point takes one tap on the torch path. Where no gradient reaches
     dx, dy or the bias, the native kernel computes it in one pass on the CPU
-    (the same values to rounding, about 2-3x faster than these torch ops,
-    which are its reference).
+    (``native/csrc/front.cpp``: the same values to rounding, about 2-3x
+    faster than these torch ops, which are its reference).
     """
     kind = {"trilinear": 0, "nearest-mip": 0, "anisotropic": 1, "auto": 2}[filter]
     grad = torch.is_grad_enabled() and (dx.requires_grad or dy.requires_grad or
@@ -49,9 +49,9 @@ def taps(filter: str, dx: Tensor, dy: Tensor, bias: Union[float, Tensor], height
     if kernel is not None:
         per_point = isinstance(bias, Tensor) and bias.dim() == 1
         D, axis, count = kernel.front(dx.contiguous(), dy.contiguous(),
-                                             bias.detach().contiguous() if per_point else dx.new_empty(0),
-                                             0.0 if per_point else float(bias), height, width, levels, kind,
-                                             max_aniso, tolerance)
+                                      bias.detach().contiguous() if per_point else dx.new_empty(0),
+                                      bias0=0.0 if per_point else float(bias), height=height, width=width,
+                                      levels=levels, kind=kind, max_aniso=max_aniso, tolerance=tolerance)
         return (D, axis, count) if kind else (D, None, None)
     if kind == 0:
         return level(log2_length(dx, dy, height, width), bias, levels), None, None

@@ -27,6 +27,8 @@ from torch import Tensor
 WRAP_MODES = ("repeat", "clamp", "mirror", "border")
 # The native kernel's code of each mode: its position in WRAP_MODES.
 WRAP_CODES = {mode: code for code, mode in enumerate(WRAP_MODES)}
+# From 2^52 on a float has no fractional part left: the cap of texel indices.
+INDEX_CAP = 2.0 ** 52
 
 Wrap = Union[str, Sequence[str]]
 
@@ -66,7 +68,7 @@ def floor_index(x: Tensor) -> Tensor:
     """
     i = torch.nan_to_num(torch.floor(x), nan=0.0, posinf=0.0, neginf=0.0)
     # float16 / bfloat16 cannot hold 2**52; their finite values are all below it.
-    cap = min(2.0 ** 52, torch.finfo(x.dtype).max)
+    cap = min(INDEX_CAP, torch.finfo(x.dtype).max)
     return i.clamp_(-cap, cap).long()
 
 

@@ -60,10 +60,10 @@ from .anisotropic import RATIO_TOL, tap_count
 
 # exp2 of a larger exponent would overflow float32; any count past 2^64 is
 # capped at max_aniso anyway.
-_MAX_LOG2 = 64.0
+MAX_LOG2 = 64.0
 # Taps closer than half a level-0 texel are not worth their cost (module
 # docstring); log2 of that spacing floor.
-_LOG2_FLOOR = -1.0
+LOG2_FLOOR = -1.0
 
 
 def auto_tap_count(ell: Ellipse, fp: Footprint, lod_bias: Tensor | float, max_aniso: float,
@@ -73,14 +73,14 @@ def auto_tap_count(ell: Ellipse, fp: Footprint, lod_bias: Tensor | float, max_an
     bias = lod_bias.detach() if isinstance(lod_bias, Tensor) else lod_bias
     with torch.no_grad():
         # In log2 so that huge biases or lengths cannot overflow; degenerate
-        # lengths are +-_FAR there (finite), a NaN bias gives NaN -> 1 tap.
-        minor_floor = torch.clamp(ell.log2_minor + bias, min=_LOG2_FLOOR)
+        # lengths are +-FAR there (finite), a NaN bias gives NaN -> 1 tap.
+        minor_floor = torch.clamp(ell.log2_minor + bias, min=LOG2_FLOOR)
         x = ell.log2_major + bias - minor_floor
         top = float(max(math.floor(max_aniso), 1))
         # The count the anisotropic filter would take (with the half-texel
         # floor), capped first, so the level differs from its by at most
         # log2(1 + tolerance); clamped before the cast (no int overflow).
-        ratio = torch.exp2(x.clamp(max=_MAX_LOG2))
+        ratio = torch.exp2(x.clamp(max=MAX_LOG2))
         full = torch.ceil(ratio - RATIO_TOL).clamp_(max=top)
         n = torch.ceil(full / (1.0 + tolerance) - RATIO_TOL)
         # Past max_aniso the anisotropic taps are already wider than the

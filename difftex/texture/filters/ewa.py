@@ -18,7 +18,7 @@ per point and level. Pairs are processed in chunks of bounded size; with
 gradients and more than one chunk, each chunk is checkpointed (recomputed in
 the backward pass) so memory stays bounded too. Texels are read through ``difftex.wrap.wrap_index``.
 On the CPU the same computation runs in the native kernel
-(``difftex.native``: point by point, forward and first-order backward);
+(``difftex.texture.native``: point by point, forward and first-order backward);
 these torch ops are its reference and serve CUDA and double backward.
 
 Where the level is clamped at the coarsest level and the ellipse is still
@@ -45,9 +45,9 @@ from ..lod import Ellipse, Footprint, level
 from ..wrap import WRAP_CODES, drop_periods, wrap_index
 from .trilinear import mip_blend, per_level
 
-_ALPHA = 2.0                      # pbrt-v4's Gaussian falloff
+ALPHA = 2.0                       # pbrt-v4's Gaussian falloff
 _CHUNK = 1 << 20                  # (point, texel) pairs per chunk
-_MAX_MINOR = 2.0                  # level-k texels, see the module docstring
+MAX_MINOR = 2.0                   # level-k texels, see the module docstring
 
 
 def _covariance(fp: Footprint, ell: Ellipse, max_aniso: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -101,7 +101,7 @@ def _ewa_chunk(flat: Tensor, H: int, W: int, ox: Tensor, oy: Tensor, sx: Tensor,
     tt = ry - sy[point]
     det = sxx * syy - sxy * sxy
     r2 = (syy[point] * ss * ss - 2 * sxy[point] * ss * tt + sxx[point] * tt * tt) / det[point]
-    w = (torch.exp(-_ALPHA * r2) - math.exp(-_ALPHA)).clamp(min=0)
+    w = (torch.exp(-ALPHA * r2) - math.exp(-ALPHA)).clamp(min=0)
     ix, vx = wrap_index(ox[point] + rx, W, wrap_u)
     iy, vy = wrap_index(oy[point] + ry, H, wrap_v)
     vals = flat.index_select(1, iy * W + ix)
@@ -120,9 +120,9 @@ def _ewa_level(lev: Tensor, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Ten
     _, C, H, W = lev.shape
     kx, ky = W / full_w, H / full_h
     # Beyond the coarsest level the ellipse is shrunk to a minor axis of
-    # _MAX_MINOR texels; on other levels to the level's larger side (module
+    # MAX_MINOR texels; on other levels to the level's larger side (module
     # docstring), which only a bias far below the footprint's level reaches.
-    cap = _MAX_MINOR if coarsest else max(_MAX_MINOR, float(max(H, W)))
+    cap = MAX_MINOR if coarsest else max(MAX_MINOR, float(max(H, W)))
     minor_k = minor * max(kx, ky)
     pos = minor_k > 0
     s = torch.where(pos, torch.minimum(scale, cap / torch.where(pos, minor_k, torch.ones_like(minor_k))), scale)
@@ -207,7 +207,7 @@ def _ewa_torch(levels: Sequence[Tensor], uv: Tensor, sigma: Tensor, minor: Tenso
 
 
 class _NativeEWA(torch.autograd.Function):
-    """EWA on the native CPU kernel (``difftex.native``), forward and first-order backward.
+    """EWA on the native CPU kernel (``difftex.texture.native``), forward and first-order backward.
 
     uv [M, 2] (periods dropped, finite), sigma [M, 3], minor [M], scale [M],
     D [M], levels ``[1, C, H_k, W_k]`` -> [C, M]; the same values and
@@ -221,8 +221,10 @@ class _NativeEWA(torch.autograd.Function):
         ctx.opts = opts
         ctx.d_grad = ctx.needs_input_grad[4]  # mip_blend reads the upper level at an integer D then too
         ctx.save_for_backward(uv, sigma, minor, scale, D, *levels)
-        return native.load().ewa(*_ewa_args(levels, uv, sigma, minor, scale, D), H, W, WRAP_CODES[wrap_u],
-                                 WRAP_CODES[wrap_v], border, ctx.d_grad)
+        kernel = native.load()
+        ctx.read = kernel.ReadOptions(wrap_u=WRAP_CODES[wrap_u], wrap_v=WRAP_CODES[wrap_v], border=border,
+                                      d_grad=ctx.d_grad)
+        return kernel.ewa(*_ewa_args(levels, uv, sigma, minor, scale, D), H, W, ctx.read)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
@@ -235,9 +237,10 @@ class _NativeEWA(torch.autograd.Function):
                 lambda: _ewa_torch(levels, uv, sigma, minor, scale, D, H, W, wrap_u, wrap_v, border),
                 (uv, sigma, minor, scale, D, None, *levels), need, grad)
         need_levels = need[6:]
-        gl, guv, gsig, gmin, gsc, gD = native.load().ewa_backward(
-            *_ewa_args(levels, uv, sigma, minor, scale, D), grad, H, W, WRAP_CODES[wrap_u],
-            WRAP_CODES[wrap_v], border, ctx.d_grad, any(need_levels), need[0], any(need[1:4]), need[4])
+        kernel = native.load()
+        gl, guv, gsig, gmin, gsc, gD = kernel.ewa_backward(
+            *_ewa_args(levels, uv, sigma, minor, scale, D), grad, H, W, ctx.read,
+            kernel.EwaNeeds(levels=any(need_levels), uv=need[0], ellipse=any(need[1:4]), D=need[4]))
         return (guv if need[0] else None, gsig if need[1] else None, gmin if need[2] else None,
                 gsc if need[3] else None, gD if need[4] else None, None,
                 *(g.unsqueeze(0) if g is not None and n else None for g, n in zip(gl, need_levels)))

@@ -3,7 +3,7 @@
 This is the *trilinear tap* that the anisotropic filter calls (N taps along
 the major axis per point), and ``mip_blend``, its level grouping and blend,
 is shared with the EWA filter. On the CPU ``trilinear_points`` runs the
-native kernel (``difftex.native``: one pass over the points, taps and
+native kernel (``difftex.texture.native``: one pass over the points, taps and
 levels included). The torch path below serves CUDA, float16, double
 backward and machines without the kernel, and is the reference the tests
 compare the kernel with. Work is proportional to the points a level serves: points are
@@ -132,7 +132,7 @@ class _PyramidRead(torch.autograd.Function):
 
 
 class _NativeTaps(torch.autograd.Function):
-    """``trilinear_points`` on the native CPU kernel (``difftex.native``).
+    """``trilinear_points`` on the native CPU kernel (``difftex.texture.native``).
 
     uv [M, 2], D [M], axis [M, 2] and count [M] int64 (or both None: one tap
     a point), levels ``[1, C, H_k, W_k]`` -> [C, M].
@@ -147,8 +147,10 @@ class _NativeTaps(torch.autograd.Function):
         ctx.opts = opts
         ctx.taps = axis is not None
         ctx.save_for_backward(uv, D, axis, count, *levels)
-        return native.load().forward(*_native_args(levels, uv, D, axis, count), WRAP_CODES[wrap_u],
-                                     WRAP_CODES[wrap_v], border, nearest, ctx.d_grad)
+        kernel = native.load()
+        ctx.read = kernel.ReadOptions(wrap_u=WRAP_CODES[wrap_u], wrap_v=WRAP_CODES[wrap_v], border=border,
+                                      nearest=nearest, d_grad=ctx.d_grad)
+        return kernel.forward(*_native_args(levels, uv, D, axis, count), ctx.read)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
@@ -161,9 +163,10 @@ class _NativeTaps(torch.autograd.Function):
             return native.double_backward(
                 lambda: _torch_taps(levels, uv, D, wrap_u, wrap_v, border, nearest, axis, count),
                 (uv, D, axis, None, None, *levels), need, grad)
-        gl, guv, gD, gax = native.load().backward(
-            *_native_args(levels, uv, D, axis, count), grad, WRAP_CODES[wrap_u], WRAP_CODES[wrap_v],
-            border, nearest, ctx.d_grad, any(need_levels), need_uv, need_D, need_axis and ctx.taps)
+        kernel = native.load()
+        gl, guv, gD, gax = kernel.backward(
+            *_native_args(levels, uv, D, axis, count), grad, ctx.read,
+            kernel.TapNeeds(levels=any(need_levels), uv=need_uv, D=need_D, axis=need_axis and ctx.taps))
         return (guv, gD if need_D else None, gax if need_axis and ctx.taps else None, None, None,
                 *(g.unsqueeze(0) if g is not None and n else None for g, n in zip(gl, need_levels)))
 
@@ -262,7 +265,7 @@ def trilinear_points(levels: Levels, uv: Tensor, D: Tensor, wrap_u: str, wrap_v:
         [C, M]. Differentiable in every level (or the texture), uv, D
         (trilinear only) and axis.
 
-    On the CPU this runs the native kernel (``difftex.native``) where it is
+    On the CPU this runs the native kernel (``difftex.texture.native``) where it is
     built, else (and on CUDA, and as the tests' reference) the torch path.
     """
     if native.kernel(uv) is not None:

@@ -1,4 +1,4 @@
-"""The native CPU kernel of the mip filters (``csrc/mip_read.cpp``): built on first use, optional.
+"""The native CPU kernel of the mip filters (C++ sources in ``csrc/``): built on first use, optional.
 
 The trilinear / nearest-mip taps of a pyramid, one a point or N along the
 footprint's major axis (the trilinear, nearest-mip, anisotropic and auto
@@ -15,13 +15,24 @@ and runs wherever this kernel does not: on CUDA, for double backward, with
 ``DIFFTEX_NATIVE=0`` in the environment, or where the build fails (no C++
 compiler or ninja), which is reported once as a warning.
 
+The sources, one per kernel: ``csrc/taps.cpp`` (the taps, forward and
+backward), ``csrc/front.cpp``, ``csrc/box.cpp``, ``csrc/ewa.cpp``, with
+``csrc/common.h`` (the shared inline helpers and the constants mirrored from
+the Python reference), ``csrc/kernels.h`` (the entry points and their
+options) and ``csrc/module.cpp`` (the Python bindings). The module exports
+its constants (``FAR``, ``RATIO_TOL``, ``WRAP_CODES``, ...), which the tests
+check against the Python ones.
+
 The first use compiles the kernel with ``torch.utils.cpp_extension.load``
 (about 30-60 s; cached by torch in ``TORCH_EXTENSIONS_DIR``, by default
-``~/.cache/torch_extensions``, and reused while the source is unchanged).
+``~/.cache/torch_extensions``, and reused while the sources are unchanged:
+ninja rebuilds what a changed source or header touches). Where no ``ninja``
+is on PATH, the one of the ``ninja`` pip package (a dependency) is put there.
 """
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 import warnings
 from pathlib import Path
@@ -33,8 +44,8 @@ from torch import Tensor
 
 from ...backend import current, wants_native
 
-_SOURCE = Path(__file__).resolve().parent / "csrc" / "mip_read.cpp"
-_NAME = "difftex_mip_read"
+_CSRC = Path(__file__).resolve().parent / "csrc"
+_NAME = "difftex_native"
 _module: ModuleType | None = None
 _tried = False
 
@@ -65,7 +76,9 @@ def load() -> ModuleType | None:
         # at::parallel_for runs serially unless the extension itself is built with OpenMP (as torch is
         # on Linux); elsewhere the kernel stays single-threaded rather than depend on a libomp install.
         omp = ["-fopenmp"] if sys.platform.startswith("linux") else []
-        _module = cpp_extension.load(name=_NAME, sources=[str(_SOURCE)], extra_cflags=flags + omp,
+        _ninja_on_path()
+        _module = cpp_extension.load(name=_NAME, sources=[str(p) for p in sorted(_CSRC.glob("*.cpp"))],
+                                     extra_include_paths=[str(_CSRC)], extra_cflags=flags + omp,
                                      extra_ldflags=omp, verbose=False)
     except Exception as exc:  # no compiler, no ninja, a failed build: the torch path serves
         warnings.warn(f"difftex: native CPU kernel unavailable, using the torch path ({type(exc).__name__}: "
@@ -73,6 +86,17 @@ def load() -> ModuleType | None:
                       stacklevel=2)
         _module = None
     return _module
+
+
+def _ninja_on_path() -> None:
+    """Put the ``ninja`` pip package's binary on PATH where no ninja is there (e.g. a venv not activated)."""
+    if shutil.which("ninja") is not None:
+        return
+    try:
+        import ninja
+    except ImportError:  # then cpp_extension reports the missing ninja, and the torch path serves
+        return
+    os.environ["PATH"] = ninja.BIN_DIR + os.pathsep + os.environ.get("PATH", "")
 
 
 def double_backward(recompute: Callable[[], Tensor], saved: Sequence[Optional[Tensor]], need: Sequence[bool],

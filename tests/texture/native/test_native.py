@@ -35,9 +35,9 @@ def _case(dtype=f64, B=1):
 def test_the_tap_filters_run_on_the_kernel_forward_and_backward(filter, monkeypatch):
     calls = []
     real = native.load()
-    spy = types.SimpleNamespace(box2=real.box2, **{
-        name: (lambda name: lambda *a: calls.append(name) or getattr(real, name)(*a))(name)
-        for name in ("forward", "backward", "front", "ewa", "ewa_backward")})
+    spy = types.SimpleNamespace(**{name: getattr(real, name) for name in dir(real) if not name.startswith("_")})
+    for name in ("forward", "backward", "front", "ewa", "ewa_backward"):
+        setattr(spy, name, (lambda name: lambda *a, **k: calls.append(name) or getattr(real, name)(*a, **k))(name))
     monkeypatch.setattr(native, "load", lambda: spy)
     tex, uv, dx, dy = (t.requires_grad_() for t in _case())
     taps = filter in ("trilinear", "nearest-mip", "anisotropic", "auto")
@@ -177,3 +177,48 @@ def test_the_kernel_box_step_is_bit_identical_to_the_torch_one(dtype):
     assert out.shape == (2, 3, 65, 32) and torch.equal(out, ref)
     with pytest.raises(RuntimeError, match="even H and W"):
         native.load().box2(x[..., :3, :])
+
+
+@needs_kernel
+def test_the_kernel_constants_are_the_python_ones():
+    # Each rule has one Python constant; the kernel mirrors it and exports its copy.
+    lod, wrap, anisotropic, auto, ewa = (importlib.import_module(f"difftex.texture.{name}") for name in (
+        "lod", "wrap", "filters.anisotropic", "filters.auto", "filters.ewa"))  # modules, not same-named functions
+    k = native.load()
+    assert k.FAR == lod.FAR
+    assert k.RATIO_TOL == anisotropic.RATIO_TOL
+    assert k.MAX_LOG2 == auto.MAX_LOG2 and k.MAX_RATIO == 2.0 ** auto.MAX_LOG2
+    assert k.LOG2_FLOOR == auto.LOG2_FLOOR
+    assert k.ALPHA == ewa.ALPHA and k.MAX_MINOR == ewa.MAX_MINOR
+    assert k.INDEX_CAP == wrap.INDEX_CAP == 2.0 ** 52
+    assert k.WRAP_CODES == wrap.WRAP_CODES
+
+
+@needs_kernel
+def test_the_kernel_options_are_filled_by_keyword():
+    k = native.load()
+    opts = k.ReadOptions(wrap_u=1, wrap_v=3, border=0.5, d_grad=True)
+    assert (opts.wrap_u, opts.wrap_v, opts.border, opts.nearest, opts.d_grad) == (1, 3, 0.5, False, True)
+    need = k.TapNeeds(uv=True, axis=True)
+    assert (need.levels, need.uv, need.D, need.axis) == (False, True, False, True)
+    need = k.EwaNeeds(levels=True, D=True)
+    assert (need.levels, need.uv, need.ellipse, need.D) == (True, False, False, True)
+    with pytest.raises(TypeError):  # no positional flags
+        k.TapNeeds(True, True, False, False)
+    with pytest.raises(RuntimeError, match="wrap_v must be a wrap code 0-3, got 4"):
+        k.ReadOptions(wrap_u=0, wrap_v=4)
+    tex, uv, dx, dy = _case()
+    D = torch.zeros(3, dtype=f64)
+    with pytest.raises(RuntimeError, match="nearest-mip is not an EWA option"):
+        k.ewa([tex[0, :, :4, :4].contiguous()], uv[0, 0].contiguous(), torch.zeros(4, 3, dtype=f64)[:3],
+              D, D, D, 4, 4, k.ReadOptions(wrap_u=0, wrap_v=0, nearest=True))
+
+
+def test_the_pip_ninja_goes_on_path_where_none_is(monkeypatch, tmp_path):
+    ninja = pytest.importorskip("ninja")
+    monkeypatch.setenv("PATH", str(tmp_path))  # no ninja there
+    native._ninja_on_path()
+    assert native.shutil.which("ninja") is not None
+    assert native.os.environ["PATH"].split(native.os.pathsep) == [ninja.BIN_DIR, str(tmp_path)]
+    native._ninja_on_path()  # found now: PATH left as it is
+    assert native.os.environ["PATH"].split(native.os.pathsep) == [ninja.BIN_DIR, str(tmp_path)]

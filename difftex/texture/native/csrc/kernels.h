@@ -1,0 +1,63 @@
+// The entry points of the native CPU kernel (difftex/texture/native), one
+// source each, and the options they take by name: module.cpp binds them,
+// the Python callers (filters/trilinear.py _NativeTaps, filters/ewa.py
+// _NativeEWA, taps.py, pyramid/mipmap.py) fill the options by keyword, so
+// no caller counts boolean positions.
+#pragma once
+
+#include <torch/extension.h>
+
+#include <tuple>
+#include <vector>
+
+namespace difftex {
+
+// How a pyramid read treats the texture: the wrap code of each axis
+// (texture/wrap.py WRAP_CODES), the constant read outside for "border",
+// nearest-mip (one level, the nearest) or a blend of two, and whether D
+// needs a gradient (mip_blend then reads the upper level at an integer D
+// too, for d/dD).
+struct ReadOptions {
+  int64_t wrap_u, wrap_v;
+  double border;
+  bool nearest, d_grad;
+};
+
+// The gradients the taps' backward computes.
+struct TapNeeds {
+  bool levels, uv, D, axis;
+};
+
+// The gradients the EWA backward computes (ellipse: sigma, minor and scale).
+struct EwaNeeds {
+  bool levels, uv, ellipse, D;
+};
+
+// taps.cpp: the bilinear-tap mip filters. Levels [C, h_k, w_k], uv [M, 2],
+// D [M], axis [M, 2] and count [M] int64 (both empty: one tap a point);
+// forward -> [C, M]; backward -> (level gradients, undefined where no point
+// reads the level or not needed; uv [M, 2]; D [M]; axis [M, 2]), each
+// undefined where not needed.
+torch::Tensor forward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor D, torch::Tensor axis,
+                      torch::Tensor count, const ReadOptions& opts);
+std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tensor> backward(
+    std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor D, torch::Tensor axis, torch::Tensor count,
+    torch::Tensor grad, const ReadOptions& opts, const TapNeeds& need);
+
+// front.cpp: the taps' footprint front end, no gradient.
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, torch::Tensor dy, torch::Tensor bias,
+                                                              double bias0, int64_t H, int64_t W, int64_t levels,
+                                                              int64_t kind, double max_aniso, double tolerance);
+
+// box.cpp: one 2 x 2 box step of the pyramid.
+torch::Tensor box2(torch::Tensor x);
+
+// ewa.cpp: EWA, forward [C, M] and first-order backward.
+torch::Tensor ewa(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor sigma, torch::Tensor minor,
+                  torch::Tensor scale, torch::Tensor D, int64_t full_h, int64_t full_w, const ReadOptions& opts);
+std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor>
+ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor sigma, torch::Tensor minor,
+             torch::Tensor scale, torch::Tensor D, torch::Tensor grad, int64_t full_h, int64_t full_w,
+             const ReadOptions& opts, const EwaNeeds& need);
+
+}  // namespace difftex

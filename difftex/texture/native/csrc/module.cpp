@@ -1,0 +1,94 @@
+// The Python module of the native CPU kernel (difftex/texture/native): the
+// entry points of taps.cpp, front.cpp, box.cpp and ewa.cpp, their options
+// (filled by keyword from Python), and the constants the kernel shares with
+// the Python reference, exported so that tests/texture/native/test_native.py
+// checks each against the Python constant it mirrors. The only translation
+// unit that defines the module.
+#include "common.h"
+#include "kernels.h"
+
+#include <array>
+#include <utility>
+
+namespace py = pybind11;
+using namespace difftex;
+
+namespace {
+
+void check_wrap(int64_t code, const char* name) {
+  TORCH_CHECK(code >= REPEAT && code <= BORDER, "mip_read.ReadOptions: ", name, " must be a wrap code 0-3, got ",
+              code);
+}
+
+// Binds a struct of four gradient flags, each a keyword argument (default
+// false) and a read-only attribute.
+template <typename T>
+void bind_needs(py::module_& m, const char* name, const char* doc,
+                const std::array<std::pair<const char*, bool T::*>, 4>& flags) {
+  py::class_<T> c(m, name, doc);
+  c.def(py::init([flags](bool a, bool b, bool d, bool e) {
+          T t{};
+          t.*flags[0].second = a;
+          t.*flags[1].second = b;
+          t.*flags[2].second = d;
+          t.*flags[3].second = e;
+          return t;
+        }),
+        py::kw_only(), py::arg(flags[0].first) = false, py::arg(flags[1].first) = false,
+        py::arg(flags[2].first) = false, py::arg(flags[3].first) = false);
+  for (const auto& [field, member] : flags) c.def_readonly(field, member);
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  py::class_<ReadOptions>(m, "ReadOptions", "How a pyramid read treats the texture (all by keyword).")
+      .def(py::init([](int64_t wrap_u, int64_t wrap_v, double border, bool nearest, bool d_grad) {
+             check_wrap(wrap_u, "wrap_u");
+             check_wrap(wrap_v, "wrap_v");
+             return ReadOptions{wrap_u, wrap_v, border, nearest, d_grad};
+           }),
+           py::kw_only(), py::arg("wrap_u"), py::arg("wrap_v"), py::arg("border") = 0.0, py::arg("nearest") = false,
+           py::arg("d_grad") = false)
+      .def_readonly("wrap_u", &ReadOptions::wrap_u)
+      .def_readonly("wrap_v", &ReadOptions::wrap_v)
+      .def_readonly("border", &ReadOptions::border)
+      .def_readonly("nearest", &ReadOptions::nearest)
+      .def_readonly("d_grad", &ReadOptions::d_grad);
+  bind_needs<TapNeeds>(m, "TapNeeds", "The gradients the taps' backward computes (all by keyword).",
+                       {{{"levels", &TapNeeds::levels}, {"uv", &TapNeeds::uv}, {"D", &TapNeeds::D},
+                         {"axis", &TapNeeds::axis}}});
+  bind_needs<EwaNeeds>(m, "EwaNeeds", "The gradients the EWA backward computes (all by keyword).",
+                       {{{"levels", &EwaNeeds::levels}, {"uv", &EwaNeeds::uv}, {"ellipse", &EwaNeeds::ellipse},
+                         {"D", &EwaNeeds::D}}});
+
+  m.def("forward", &forward, "mip pyramid read, forward", py::arg("levels"), py::arg("uv"), py::arg("D"),
+        py::arg("axis"), py::arg("count"), py::arg("opts"));
+  m.def("backward", &backward, "mip pyramid read, first-order backward", py::arg("levels"), py::arg("uv"),
+        py::arg("D"), py::arg("axis"), py::arg("count"), py::arg("grad"), py::arg("opts"), py::arg("need"));
+  m.def("ewa", &ewa, "EWA filter, forward", py::arg("levels"), py::arg("uv"), py::arg("sigma"), py::arg("minor"),
+        py::arg("scale"), py::arg("D"), py::arg("full_h"), py::arg("full_w"), py::arg("opts"));
+  m.def("ewa_backward", &ewa_backward, "EWA filter, first-order backward", py::arg("levels"), py::arg("uv"),
+        py::arg("sigma"), py::arg("minor"), py::arg("scale"), py::arg("D"), py::arg("grad"), py::arg("full_h"),
+        py::arg("full_w"), py::arg("opts"), py::arg("need"));
+  m.def("box2", &box2, "2 x 2 box step of an even level", py::arg("x"));
+  m.def("front", &front, "mip level (and anisotropic / auto tap axis and count), no gradient", py::arg("dx"),
+        py::arg("dy"), py::arg("bias"), py::kw_only(), py::arg("bias0"), py::arg("height"), py::arg("width"),
+        py::arg("levels"), py::arg("kind"), py::arg("max_aniso"), py::arg("tolerance"));
+
+  // The constants mirrored from Python (common.h names the Python side of each).
+  m.attr("INDEX_CAP") = kTwo52;
+  m.attr("FAR") = kFar;
+  m.attr("RATIO_TOL") = kRatioTol;
+  m.attr("MAX_LOG2") = kMaxLog2;
+  m.attr("MAX_RATIO") = kMaxRatio;
+  m.attr("LOG2_FLOOR") = kLog2Floor;
+  m.attr("ALPHA") = kAlpha;
+  m.attr("MAX_MINOR") = kMaxMinor;
+  py::dict codes;
+  codes["repeat"] = static_cast<int>(REPEAT);
+  codes["clamp"] = static_cast<int>(CLAMP);
+  codes["mirror"] = static_cast<int>(MIRROR);
+  codes["border"] = static_cast<int>(BORDER);
+  m.attr("WRAP_CODES") = codes;
+}
