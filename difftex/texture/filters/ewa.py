@@ -125,7 +125,10 @@ def _ewa_level(lev: Tensor, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Ten
     cap = MAX_MINOR if coarsest else max(MAX_MINOR, float(max(H, W)))
     minor_k = minor * max(kx, ky)
     pos = minor_k > 0
-    s = torch.where(pos, torch.minimum(scale, cap / torch.where(pos, minor_k, torch.ones_like(minor_k))), scale)
+    shrunk = cap / torch.where(pos, minor_k, torch.ones_like(minor_k))
+    # Strictly below scale, as in the kernel: at a tie the footprint's own size holds, whose derivative is the
+    # one from below (torch.minimum would split the gradient between the two).
+    s = torch.where(pos & (shrunk < scale), shrunk, scale)
     # Ellipse in level-k texels (the footprint was divided by its scale).
     s2 = s * s
     sxx = sigma[:, 0] * (s2 * kx * kx) + 1
@@ -219,7 +222,7 @@ class _NativeEWA(torch.autograd.Function):
                 *levels: Tensor) -> Tensor:
         H, W, wrap_u, wrap_v, border = opts
         ctx.opts = opts
-        ctx.d_grad = ctx.needs_input_grad[4]  # mip_blend reads the upper level at an integer D then too
+        ctx.d_grad = ctx.needs_input_grad[4]  # an integer D = k > 0 then reads level k - 1 too, as mip_blend
         ctx.save_for_backward(uv, sigma, minor, scale, D, *levels)
         kernel = native.load()
         ctx.read = kernel.ReadOptions(wrap_u=WRAP_CODES[wrap_u], wrap_v=WRAP_CODES[wrap_v], border=border,
@@ -243,7 +246,7 @@ class _NativeEWA(torch.autograd.Function):
             kernel.EwaNeeds(levels=any(need_levels), uv=need[0], ellipse=any(need[1:4]), D=need[4]))
         return (guv if need[0] else None, gsig if need[1] else None, gmin if need[2] else None,
                 gsc if need[3] else None, gD if need[4] else None, None,
-                *(g.unsqueeze(0) if g is not None and n else None for g, n in zip(gl, need_levels)))
+                *native.level_grads(gl, need_levels, levels))
 
 
 def _ewa_args(levels, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Tensor, D: Tensor) -> tuple:

@@ -142,7 +142,7 @@ class _NativeTaps(torch.autograd.Function):
     def forward(ctx, uv: Tensor, D: Tensor, axis: Tensor | None, count: Tensor | None, opts: tuple,
                 *levels: Tensor) -> Tensor:
         wrap_u, wrap_v, border, nearest = opts
-        # mip_blend reads the upper level at integer D too where D needs a gradient.
+        # Where D needs a gradient, an integer D = k > 0 reads level k - 1 too (mip_blend does the same).
         ctx.d_grad = ctx.needs_input_grad[1]
         ctx.opts = opts
         ctx.taps = axis is not None
@@ -168,7 +168,7 @@ class _NativeTaps(torch.autograd.Function):
             *_native_args(levels, uv, D, axis, count), grad, ctx.read,
             kernel.TapNeeds(levels=any(need_levels), uv=need_uv, D=need_D, axis=need_axis and ctx.taps))
         return (guv, gD if need_D else None, gax if need_axis and ctx.taps else None, None, None,
-                *(g.unsqueeze(0) if g is not None and n else None for g, n in zip(gl, need_levels)))
+                *native.level_grads(gl, need_levels, levels))
 
 
 def _native_args(levels, uv: Tensor, D: Tensor, axis: Tensor | None, count: Tensor | None) -> tuple:

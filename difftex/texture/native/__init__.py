@@ -117,6 +117,20 @@ def double_backward(recompute: Callable[[], Tensor], saved: Sequence[Optional[Te
     return tuple(full)
 
 
+def level_grads(grads: Sequence[Optional[Tensor]], need: Sequence[bool], levels: Sequence[Tensor]) -> tuple:
+    """A kernel node's level gradients, ``[1, C, h, w]`` each, from the kernel's ``[C, h, w]`` (None: not read).
+
+    None where not needed. Where every needed one came back empty (no point
+    read a level, e.g. every point masked), the first gets zeros: the texture
+    then has a zero gradient, as on the torch path, rather than none.
+    """
+    out = [g.unsqueeze(0) if g is not None and n else None for g, n in zip(grads, need)]
+    if any(need) and all(g is None for g in out):
+        first = list(need).index(True)
+        out[first] = torch.zeros_like(levels[first])
+    return tuple(out)
+
+
 def kernel(like: Tensor) -> ModuleType | None:
     """The kernel module where ``difftex.backend``'s choice sends reads of tensors like ``like``, else None.
 

@@ -189,9 +189,17 @@ DT_INLINE Reads reads_of(double d, int64_t K, bool nearest, bool d_grad) {
   double k0 = floor_capped(d);
   k0 = k0 < 0 ? 0 : (k0 > K - 1 ? K - 1 : k0);
   double t = d - k0;
-  r.n = 1; r.k[0] = static_cast<int64_t>(k0); r.wt[0] = 1.0 - t; r.dwt[0] = -1.0;
-  if (k0 < K - 1 && (d > k0 || (d_grad && d > 0))) {
-    r.n = 2; r.k[1] = r.k[0] + 1; r.wt[1] = t; r.dwt[1] = 1.0;
+  r.k[0] = static_cast<int64_t>(k0);
+  if (k0 < K - 1 && t > 0) {  // between two levels
+    r.n = 2; r.wt[0] = 1.0 - t; r.dwt[0] = -1.0;
+    r.k[1] = r.k[0] + 1; r.wt[1] = t; r.dwt[1] = 1.0;
+  } else if (d_grad && k0 > 0) {
+    // An integer level k0 > 0 where D needs a gradient: the derivative from below (DESIGN.md, "level
+    // gradient"), so level k0 - 1 is read with weight 0 (trilinear.py mip_blend does the same).
+    r.n = 2; r.wt[0] = 1.0; r.dwt[0] = 1.0;
+    r.k[1] = r.k[0] - 1; r.wt[1] = 0.0; r.dwt[1] = -1.0;
+  } else {  // an integer level alone (D = 0 included): no derivative
+    r.n = 1; r.wt[0] = 1.0; r.dwt[0] = 0.0;
   }
   return r;
 }
