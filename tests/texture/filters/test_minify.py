@@ -12,6 +12,7 @@ import difftex
 from difftex import lod, mipmap
 from difftex.texture.filters import trilinear as trilinear_mod
 from difftex.texture.lod import ellipse, footprint
+from difftex.texture.options import MIP_FILTERS
 from difftex.metrics import psnr
 from difftex.testing import checker_noise_texture, grazing_plane, supersampled
 
@@ -633,3 +634,14 @@ def test_bad_input():
         lod(d.expand(2, -1, -1, -1), d.expand(2, -1, -1, -1), (8, 8), lod_bias=torch.zeros(3, 4, 5))
     with pytest.raises(TypeError, match="lod_bias: expected a number"):
         lod(d, d, (8, 8), lod_bias="1")
+
+
+@pytest.mark.parametrize("filter", MIP_FILTERS)
+def test_a_zero_output_gradient_gives_the_texture_zeros_not_none(filter, backend):
+    # Every backend hands the texture a zero gradient where the loss ignores the image; the native nodes once
+    # returned None for levels no point had read, leaving texture.grad None where the torch path gave zeros.
+    tex = torch.rand(1, 3, 16, 16, dtype=f64, generator=_gen(31), requires_grad=True)
+    uv = torch.rand(1, 4, 4, 2, dtype=f64, generator=_gen(32))
+    d = torch.full((1, 4, 4, 2), 0.1, dtype=f64)
+    (difftex.sample(tex, uv, filter=filter, uv_dx=d, uv_dy=d) * 0).sum().backward()
+    assert tex.grad is not None and torch.equal(tex.grad, torch.zeros_like(tex)), filter
