@@ -18,8 +18,8 @@ that sets the choice until changed):
 
 * ``"auto"`` (default): native where it serves, else grid_sample;
   ``DIFFTEX_NATIVE=0`` in the environment keeps the kernel off (never built);
-* ``"native"``: as auto, and raises RuntimeError at the switch if the kernel
-  cannot be built;
+* ``"native"``: as auto, but a CPU read raises RuntimeError where the kernel
+  cannot be built instead of falling back;
 * ``"grid_sample"``: the torch path, kernel off;
 * ``"reference"``: the gather reference for every read, kernel off.
 
@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
+
 import torch
 from torch import Tensor
 

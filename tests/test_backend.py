@@ -13,7 +13,9 @@ cases every run.
 """
 from __future__ import annotations
 
+import importlib
 import random
+import threading
 
 import pytest
 import torch
@@ -116,3 +118,56 @@ def test_kernel_forward_without_gradients_matches_the_reference(case):
     ref = _run(cfg, "reference", frozen=True, with_grads=False)
     tol = 1e-4 if cfg["dtype"] == torch.float32 else 1e-9
     torch.testing.assert_close(fast, ref, atol=tol, rtol=tol, equal_nan=True)
+
+
+def test_the_switch_restores_the_previous_choice_and_names_bad_ones():
+    backend_mod = importlib.import_module("difftex.backend")
+    assert backend_mod.current() == "auto"
+    with difftex.backend("reference"):
+        assert backend_mod.current() == "reference" and backend_mod.single_level() == "gather"
+        with difftex.backend("grid_sample"):
+            assert backend_mod.current() == "grid_sample" and backend_mod.single_level() == "grid_sample"
+        assert backend_mod.current() == "reference"
+    assert backend_mod.current() == "auto"
+    difftex.backend("grid_sample")  # a plain call: stays until changed
+    try:
+        assert backend_mod.current() == "grid_sample"
+    finally:
+        difftex.backend("auto")
+    with pytest.raises(ValueError, match=r"backend: unknown choice 'torch'; expected one of \('auto', 'native'"):
+        difftex.backend("torch")
+    with pytest.raises(ValueError, match=r"backend: unknown choice None"):
+        difftex.backend(None)
+
+
+def test_the_choice_is_per_thread():
+    seen = []
+    with difftex.backend("reference"):
+        worker = threading.Thread(target=lambda: seen.append(importlib.import_module("difftex.backend").current()))
+        worker.start()
+        worker.join()
+    assert seen == ["auto"]
+
+
+def test_the_rule_sends_only_cpu_float32_and_float64_to_the_kernel():
+    backend_mod = importlib.import_module("difftex.backend")
+    x = torch.zeros(2)
+    assert backend_mod.wants_native(x) and backend_mod.wants_native(x.double())
+    assert not backend_mod.wants_native(x.half()) and not backend_mod.wants_native(x.to("meta"))
+    for choice in ("grid_sample", "reference"):
+        with difftex.backend(choice):
+            assert not backend_mod.wants_native(x)
+
+
+def test_native_raises_where_the_kernel_is_off(monkeypatch):
+    from difftex.texture import native
+    monkeypatch.setenv("DIFFTEX_NATIVE", "0")
+    tex, uv = torch.rand(1, 1, 8, 8), torch.rand(1, 2, 2, 2)
+    d = torch.full((1, 2, 2, 2), 0.3)
+    assert native.kernel(uv) is None  # auto: falls back
+    out = difftex.sample(tex, uv, filter="trilinear", uv_dx=d, uv_dy=d)
+    with difftex.backend("grid_sample"):
+        torch.testing.assert_close(out, difftex.sample(tex, uv, filter="trilinear", uv_dx=d, uv_dy=d))
+    with difftex.backend("native"), pytest.raises(RuntimeError, match=r"difftex.backend\('native'\): the native "
+                                                                    r"CPU kernel is not available"):
+        difftex.sample(tex, uv, filter="trilinear", uv_dx=d, uv_dy=d)
