@@ -18,11 +18,8 @@ from torch import Tensor
 from .._checks import broadcast_batch, check_float, check_same, describe
 from ..texture import Mipmap, sample
 from ..texture.options import MIP_FILTERS, check_filter
+from ..mapping.common import EPS
 from .directions import cube_to_direction, direction_to_equirect_uv
-
-# Relative distance from the y axis (after normalising) below which a direction is at a pole;
-# direction_to_equirect_uv's own threshold (difftex.mapping.common.EPS) on a unit vector.
-_POLE_EPS = 1e-9
 
 
 def _unit(dirs: Tensor, dds: list[Tensor]) -> tuple[Tensor, list[Tensor], Tensor]:
@@ -48,7 +45,7 @@ def _unit(dirs: Tensor, dds: list[Tensor]) -> tuple[Tensor, list[Tensor], Tensor
 def _pole_derivatives(n: Tensor, dn: list[Tensor], duv: list[Tensor]) -> list[Tensor]:
     """The uv derivatives with the exact poles given the limit footprint (see :func:`equirect`)."""
     rho = torch.hypot(n[..., 0].detach(), n[..., 2].detach())
-    pole = rho <= _POLE_EPS
+    pole = rho <= EPS  # direction_to_equirect_uv's own test for the axis, on a unit vector
     if not bool(pole.any()):
         return duv
     north = n[..., 1] > 0
@@ -153,7 +150,9 @@ def equirect(
             if tuple(d.shape[1:3]) != (H, W):
                 raise ValueError(f"{name}: expected {shape_doc}, got {describe(d)}")
             dds.append(d)
-        broadcast_batch(["dirs", "dirs_dx", "dirs_dy"], [B, dds[0].shape[0], dds[1].shape[0]])
+    sizes = [base.shape[0], B] + [d.shape[0] for d in dds]
+    broadcast_batch(["env", "dirs", "dirs_dx", "dirs_dy"][:len(sizes)], sizes)
+    if dds:
         Bd = max(B, dds[0].shape[0], dds[1].shape[0])
         dirs = dirs.expand(Bd, -1, -1, -1)
         dds = [d.expand(Bd, -1, -1, -1) for d in dds]
