@@ -62,6 +62,24 @@ def _pole_derivatives(n: Tensor, dn: list[Tensor], duv: list[Tensor]) -> list[Te
     return [torch.where(pole[..., None], at, g) for at, g in zip((at_dx, at_dy), duv)]
 
 
+def _at_most_one_turn(duv: list[Tensor]) -> list[Tensor]:
+    """The derivatives with their u parts scaled so that hypot(du_dx, du_dy) <= 1, one turn of longitude.
+
+    Near a pole du grows without bound (1 / sin(theta)); beyond a whole turn the footprint already covers
+    every longitude, and a longer one would only send the filters to coarser levels that average other
+    latitudes too (up to the whole map's mean).  The scaling keeps the footprint's direction and its v
+    parts, and meets the exact pole's (1, 0) continuously.
+    """
+    du = torch.stack([duv[0][..., 0], duv[1][..., 0]], dim=-1)
+    h = torch.hypot(du[..., 0].detach(), du[..., 1].detach())
+    over = h > 1  # False for NaN
+    if not bool(over.any()):
+        return duv
+    # Divide only where h > 1, so neither the value nor the backward meets a small or zero h.
+    hn = torch.where(over, torch.where(over[..., None], du, 1.0).norm(dim=-1), 1.0)
+    return [torch.stack([g[..., 0] / hn, g[..., 1]], dim=-1) for g in duv]
+
+
 def _check_dirs(name: str, d: object, like_name: str, like: Tensor, shape_doc: str) -> Tensor:
     d = check_float(name, d, 4, last=3, shape_doc=shape_doc)
     check_same(name, d, like_name, like)
@@ -104,7 +122,9 @@ def equirect(
     the seam.  Near a pole the u derivative grows like 1 / sin(theta)
     (theta the angle from the pole): the anisotropic and EWA filters see a
     long thin footprint along the latitude circle, trilinear (isotropic)
-    a correspondingly coarse level.  Exactly at a pole (distance from the
+    a correspondingly coarse level.  The u parts of the two derivatives are
+    scaled so that their length is at most one whole turn (u = 1): a longer
+    footprint covers no more longitudes, only coarser levels.  Exactly at a pole (distance from the
     y axis <= 1e-9 after normalising), where longitude is undefined, the
     point is uv (0.5, 0) / (0.5, 1) and each derivative is the limit
     footprint, the strip of every longitude by the v extent of the pixel:
@@ -159,7 +179,7 @@ def equirect(
     n, dn, zero = _unit(dirs, dds)
     if dn:
         uv, uv_dx, uv_dy = direction_to_equirect_uv(n, dirs_dx=dn[0], dirs_dy=dn[1])
-        uv_dx, uv_dy = _pole_derivatives(n, dn, [uv_dx, uv_dy])
+        uv_dx, uv_dy = _pole_derivatives(n, dn, _at_most_one_turn([uv_dx, uv_dy]))
     else:
         uv, uv_dx, uv_dy = direction_to_equirect_uv(n), None, None
     out = sample(env, uv, filter=filter, wrap=("repeat", "clamp"), uv_dx=uv_dx, uv_dy=uv_dy,

@@ -130,12 +130,14 @@ def test_seam_derivative_keeps_the_level():
 
 
 def _ring_env(He=32, We=64):
-    # 1 + 0.5 cos(2 pi u), the same on every row: its average around any latitude circle is 1.
+    # 1 + 0.5 cos(2 pi u) on the top and bottom 8 rows (average 1 around any latitude circle), 5 in between.
     u = (torch.arange(We, dtype=F64) + 0.5) / We
-    return (1 + 0.5 * torch.cos(2 * math.pi * u)).expand(1, 1, He, We).clone()
+    env = torch.full((1, 1, He, We), 5.0, dtype=F64)
+    env[..., :8, :] = env[..., -8:, :] = 1 + 0.5 * torch.cos(2 * math.pi * u)
+    return env
 
 
-@pytest.mark.parametrize("theta", [0.0, 1e-6, 1e-3])
+@pytest.mark.parametrize("theta", [0.0, 1e-6, 1e-3, 0.02])
 @pytest.mark.parametrize("north", [True, False])
 def test_pole_reads_the_circle(theta, north):
     env = _ring_env()
@@ -143,13 +145,37 @@ def test_pole_reads_the_circle(theta, north):
     d = torch.tensor([[[[math.sin(theta), c, 0.0]]]], dtype=F64)
     dx = torch.tensor([[[[0.0, 0.0, 0.02]]]], dtype=F64)
     dy = torch.tensor([[[[0.02, 0.0, 0.0]]]], dtype=F64)
-    # At / near the pole the footprint spans the whole circle of longitudes: the anisotropic and EWA filters
-    # average it (1), trilinear reads the coarsest level (the map's mean, also 1); bilinear reads one point.
-    for f in ("anisotropic", "ewa", "trilinear"):
+    # At / near the pole the footprint spans the whole circle of longitudes (u capped at one turn): the
+    # anisotropic and EWA filters average the polar rows around it (1), not the whole map (~3.5).
+    for f in ("anisotropic", "ewa"):
         v = equirect(env, d, filter=f, dirs_dx=dx, dirs_dy=dy).item()
         assert abs(v - 1.0) < 0.02, (f, v)
+    tri = equirect(env, d, filter="trilinear", dirs_dx=dx, dirs_dy=dy).item()
+    if theta < 0.02 / (2 * math.pi):
+        # A footprint of a turn or more: trilinear takes that length for both axes, the coarsest level
+        # of a 64-wide map (its mean).
+        assert tri == pytest.approx(env.mean().item(), abs=0.01)
+    else:
+        assert 1.2 < tri < env.mean().item() - 0.5  # 0.16 turn: still blurred far across latitudes
     if theta == 0.0:
-        assert equirect(env, d).item() == pytest.approx(0.5, abs=0.01)  # u = 0.5 at the pole: cos(pi)
+        # u = 0.5 at the pole, between columns 31 and 32: -cos(pi / 64) there.
+        assert equirect(env, d).item() == pytest.approx(1 - 0.5 * math.cos(math.pi / 64), abs=1e-12)
+
+
+def test_u_derivative_capped_at_one_turn():
+    # Off the pole, the cap leaves the value of a footprint under one turn alone and makes a longer one
+    # read like exactly one turn.
+    env = torch.rand(1, 2, 32, 64, generator=_gen(21), dtype=F64)
+    theta = 1e-4
+    d = torch.tensor([[[[math.sin(theta), math.cos(theta), 0.0]]]], dtype=F64)
+    dy = torch.tensor([[[[0.0, 0.0, 0.0]]]], dtype=F64)
+    # dx = a along z: du = a / (2 pi sin(theta)) turns.
+    turns = lambda k: torch.tensor([[[[0.0, 0.0, k * 2 * math.pi * math.sin(theta)]]]], dtype=F64)
+    for f in ("anisotropic", "ewa", "trilinear"):
+        one = equirect(env, d, filter=f, dirs_dx=turns(1.0), dirs_dy=dy)
+        torch.testing.assert_close(equirect(env, d, filter=f, dirs_dx=turns(40.0), dirs_dy=dy), one,
+                                   rtol=0, atol=1e-12)
+        assert (equirect(env, d, filter=f, dirs_dx=turns(0.25), dirs_dy=dy) - one).abs().max() > 1e-3
 
 
 def test_near_pole_footprint_is_long_and_thin():
@@ -394,3 +420,15 @@ def test_equirect_to_cube_minified_noise_filters():
     scores = {f: psnr(equirect_to_cube(env, size, filter=f), ref) for f in ("bilinear", "trilinear", "anisotropic")}
     assert scores["trilinear"] > scores["bilinear"] + 10, scores
     assert scores["anisotropic"] > scores["trilinear"], scores
+
+
+def test_gradcheck_capped_footprint_near_pole():
+    # du over one turn (scaled down to it): the level is log2 of the capped length, still differentiable.
+    env = torch.rand(1, 1, 16, 64, generator=_gen(22), dtype=F64, requires_grad=True)
+    d = torch.tensor([[[[0.003, 1.0, 0.001], [-0.0021, -1.0, 0.0017]]]], dtype=F64, requires_grad=True)
+    dx = torch.tensor([[[[0.01, 0.002, 0.04], [0.03, 0.0, -0.01]]]], dtype=F64, requires_grad=True)
+    dy = torch.tensor([[[[0.02, 0.0, -0.01], [0.01, 0.003, 0.02]]]], dtype=F64, requires_grad=True)
+    fn = lambda e, a, b, c: equirect(e, a, filter="trilinear", dirs_dx=b, dirs_dy=c, lod_bias=-1.3)
+    uv, ux, uy = direction_to_equirect_uv(d, dirs_dx=dx, dirs_dy=dy)
+    assert (torch.hypot(ux[..., 0], uy[..., 0]) > 1.4).all()  # the cap is active
+    assert torch.autograd.gradcheck(fn, (env, d, dx, dy), eps=1e-7, atol=1e-6)
