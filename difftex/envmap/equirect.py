@@ -208,7 +208,7 @@ def equirect_to_cube(
     env: Union[Tensor, Mipmap],
     size: int,
     *,
-    filter: str = "trilinear",
+    filter: str = "anisotropic",
     lod_bias: float = 0.0,
     max_aniso: float = 16,
 ) -> Tensor:
@@ -224,7 +224,11 @@ def equirect_to_cube(
     Args:
         env: [B, C, He, We] equirectangular map (or a Mipmap), as for :func:`equirect`.
         size: cube face width = height in texels, an int >= 1.
-        filter: any filter of :func:`difftex.sample` (default "trilinear").
+        filter: any filter of :func:`difftex.sample`. The default "anisotropic"
+            follows the map's stretch towards the poles (1 / sin(theta) along
+            u); "trilinear" blurs the two polar faces to the level of that
+            stretch (errors 0.1-0.3 there on smooth maps, not shrinking with
+            resolution, against 1e-3 for anisotropic up to size 32).
         lod_bias, max_aniso: as for :func:`equirect` (lod_bias a number).
 
     Returns:
