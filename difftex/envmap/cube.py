@@ -164,36 +164,44 @@ def _fold(face: Tensor, s: Tensor, t: Tensor, n: int) -> Tensor:
 
 
 @lru_cache(maxsize=64)
-def _gutter_table(n: int, g: int) -> tuple[Tensor, Tensor]:
-    """Index [6 P P, 3] into the flat faces [6 n n] and weights [6 P P, 3] (float64) of the padded faces, P = n + 2g."""
+def _gutter_table(n: int, g: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The gutter texels of the padded faces (P = n + 2g), flat in [6, P, P]: positions [K], and per
+    position 3 indices into the flat faces [6, n, n] with their weights (float64), [K, 3] each."""
     P = n + 2 * g
     f = torch.arange(6).view(6, 1, 1).expand(6, P, P)
     r = torch.arange(P, dtype=torch.float64)
     # texel centres in [-1, 1] face coordinates
     s = ((2 * (r - g + 0.5) / n) - 1).view(1, 1, P).expand(6, P, P)
     t = ((2 * (r - g + 0.5) / n) - 1).view(1, P, 1).expand(6, P, P)
+    out_s, out_t = s.abs() > 1, t.abs() > 1
+    gutter = (out_s | out_t).reshape(-1)
+    pos = gutter.nonzero().squeeze(1)
+    f, s, t, out_s, out_t = (x.reshape(-1)[pos] for x in (f, s, t, out_s, out_t))
     lim = 1 - 1 / n  # the outermost texel centre
     sc, tcl = s.clamp(-lim, lim), t.clamp(-lim, lim)
-    out_s, out_t = s.abs() > 1, t.abs() > 1
     a = _fold(f, s, tcl, n)     # across the left / right edge
     b = _fold(f, sc, t, n)      # across the top / bottom edge
-    c = _fold(f, sc, tcl, n)    # the face's own (clamped) texel
-    idx = torch.stack([a, b, c], -1)
+    c = _fold(f, sc, tcl, n)    # the face's own corner texel (weight 0 off the corners)
     both = (out_s & out_t).double()
-    w = torch.stack([(out_s & ~out_t).double() + both / 3, (out_t & ~out_s).double() + both / 3,
-                     (~out_s & ~out_t).double() + both / 3], -1)
-    return idx.reshape(-1, 3), w.reshape(-1, 3)
+    w = torch.stack([(out_s & ~out_t).double() + both / 3, (out_t & ~out_s).double() + both / 3, both / 3], -1)
+    return pos, torch.stack([a, b, c], -1), w
 
 
 def _atlas(level: Tensor, g: int) -> Tensor:
-    """[B, 6, C, n, n] -> [B, C, 6 P, P]: the faces with their gutters, stacked along the rows."""
+    """[B, 6, C, n, n] -> [B, C, 6 P, P]: the faces with their gutters, stacked along the rows.
+
+    The faces are copied in by a zero padding and only the gutter texels
+    (about 4 g n per face) are gathered: a gather of every padded texel
+    costs ~20x more on the CPU (measured at n = 256).
+    """
     B, _, C, n, _ = level.shape
-    idx, w = _gutter_table(n, g)
-    idx, w = idx.to(level.device), w.to(level.device, level.dtype)
-    flat = level.permute(0, 2, 1, 3, 4).reshape(B, C, 6 * n * n)
-    picked = flat.index_select(-1, idx.reshape(-1)).view(B, C, -1, 3)
     P = n + 2 * g
-    return (picked * w).sum(-1).view(B, C, 6 * P, P)
+    pos, idx, w = _gutter_table(n, g)
+    pos, idx, w = pos.to(level.device), idx.to(level.device), w.to(level.device, level.dtype)
+    faces = level.transpose(1, 2)  # [B, C, 6, n, n]
+    padded = torch.nn.functional.pad(faces, (g, g, g, g)).view(B, C, 6 * P * P)
+    picked = faces.reshape(B, C, 6 * n * n).index_select(-1, idx.reshape(-1)).view(B, C, -1, 3)
+    return padded.index_add(-1, pos, (picked * w).sum(-1)).view(B, C, 6 * P, P)
 
 
 def _atlas_uv(face: Tensor, uv: Tensor, n: int, g: int) -> Tensor:
