@@ -186,6 +186,43 @@ def test_no_seams_along_great_circles(filter):
     assert naive_cross > 3 * naive_inside, (naive_cross, naive_inside)
 
 
+def test_bicubic_seamless_away_from_corners():
+    """Bicubic's 4 x 4 stencil is continuous across edges; within 2 texels of a cube corner, where three
+    faces meet and no square stencil fits, the averaged gutter corners leave a jump (measured 0.028 on
+    uniform [0, 1) texels at S = 8, against 0.0032 inside faces)."""
+    S = 8
+    cube = torch.rand(1, 6, 3, S, S, dtype=F64, generator=torch.Generator().manual_seed(8))
+    d = great_circles(20000).unsqueeze(0)
+    face, uv = direction_to_cube(d)
+    vals = cubemap(cube, d, filter="bicubic")
+    jump = (vals - vals.roll(-1, -1)).abs().amax(1)[0]
+    cross = face[0] != face[0].roll(-1, -1)
+    corner = (uv[0] - 0.5).abs().amin(-1) > 0.5 - 2.0 / S
+    assert jump[cross & ~corner].max() <= jump[~cross].max()
+    assert jump[cross & corner].max() < 0.05
+    naive = naive_read(cube, d, "bicubic")
+    naive_jump = (naive - naive.roll(-1, -1)).abs().amax(1)[0]
+    assert naive_jump[cross & ~corner].max() > 3 * naive_jump[~cross].max()
+
+
+def test_lod_bias():
+    cube, d = grad_inputs(S=8)
+    dx, dy = tangent_derivs(d.detach(), 0.3)
+    a = cubemap(cube, d, filter="trilinear", dirs_dx=dx, dirs_dy=dy, lod_bias=0.7)
+    b = cubemap(cube, d, filter="trilinear", dirs_dx=dx, dirs_dy=dy,
+                lod_bias=torch.full(d.shape[:3], 0.7, dtype=F64))
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    # A large bias reads the 1 x 1 level, the mean of each face, at the face centres only (elsewhere the
+    # 1 x 1 texel blends with the neighbouring faces' through the gutter, as any level does).
+    centres = torch.cat([torch.eye(3, dtype=F64), -torch.eye(3, dtype=F64)])[[0, 3, 1, 4, 2, 5]].view(1, 1, 6, 3)
+    top = cubemap(cube, centres, filter="trilinear", dirs_dx=dx[:, :, :6], dirs_dy=dy[:, :, :6], lod_bias=20.0)
+    torch.testing.assert_close(top[0, :, 0], cube[0].mean((-1, -2)).T, rtol=0, atol=1e-12)
+    bias = torch.full(d.shape[:3], 0.4, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda bb: cubemap(cube.detach(), d.detach(), filter="trilinear", dirs_dx=dx, dirs_dy=dy, lod_bias=bb),
+        (bias,))
+
+
 # ---------------------------------------------------------------- gradients
 
 
