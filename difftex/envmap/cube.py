@@ -69,6 +69,8 @@ from __future__ import annotations
 from functools import lru_cache
 from typing import Iterator, Optional, Sequence, Union
 
+import numbers
+
 import torch
 from torch import Tensor
 
@@ -79,7 +81,7 @@ from ..texture.filters.trilinear import mip_blend, per_level
 from ..texture.options import DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_filter, check_number
 from ..texture.lod import level, log2_length
 from ..texture.pyramid.mipmap import level_count, mipmap
-from ..texture.sample import _check_bias, sample
+from ..texture.sample import sample
 from ..texture.taps import taps
 from .directions import cube_to_direction, direction_to_cube
 
@@ -306,6 +308,8 @@ def cubemap(
                                  f"got {describe(d)}")
             derivs.append(d)
     bias = _check_bias(lod_bias, dirs, base)
+    if isinstance(cube, CubeMipmap):
+        _check_levels(cube)
     sizes = [Bt, Bd] + [d.shape[0] for d in derivs]
     names = ["cube", "dirs", "dirs_dx", "dirs_dy"][:len(sizes)]
     if isinstance(bias, Tensor) and bias.dim() == 3:
@@ -380,6 +384,36 @@ def _log2_length(dirs: Tensor, dds: list[Tensor], face: Tensor, uv: Tensor, S: i
         num = num + w * torch.where(use, other, 0.0)
         den = den + w
     return num / den
+
+
+def _check_bias(lod_bias: object, dirs: Tensor, base: Tensor) -> Union[float, Tensor]:
+    """lod_bias as a float or a validated tensor (scalar or [B, H, W] like dirs)."""
+    B, H, W, _ = dirs.shape
+    if isinstance(lod_bias, Tensor):
+        check_float("lod_bias", lod_bias, (0, 3), shape_doc=f"scalar or [B, H, W] = [{B}, {H}, {W}]")
+        check_same("lod_bias", lod_bias, "cube", base)
+        if lod_bias.dim() == 3 and tuple(lod_bias.shape[1:]) != (H, W):
+            raise ValueError(f"lod_bias: expected a scalar or [B, H, W] = [{B}, {H}, {W}] like dirs, "
+                             f"got {describe(lod_bias)}")
+        return lod_bias
+    if isinstance(lod_bias, bool) or not isinstance(lod_bias, numbers.Real):
+        raise TypeError(f"lod_bias: expected a number or a float tensor [B, H, W], got {type(lod_bias).__name__}")
+    return float(lod_bias)
+
+
+def _check_levels(pyramid: CubeMipmap) -> None:
+    """A user-built CubeMipmap: every level [B, 6, C, ceil(S / 2^k), ceil(S / 2^k)] like the base."""
+    base = pyramid.levels[0]
+    B, _, C, S, _ = base.shape
+    if len(pyramid.levels) > level_count(S, S):
+        raise ValueError(f"cube: {len(pyramid.levels)} levels given but {S}x{S} faces have only "
+                         f"{level_count(S, S)} (down to 1x1)")
+    for k, lv in enumerate(pyramid.levels[1:], 1):
+        n = -(-S // (1 << k))
+        check_float(f"cube[{k}]", lv, 5, shape_doc="[B, 6, C, S_k, S_k]")
+        check_same(f"cube[{k}]", lv, "cube[0]", base)
+        if tuple(lv.shape) != (B, 6, C, n, n):
+            raise ValueError(f"cube[{k}]: expected shape {(B, 6, C, n, n)} (ceil(S / 2^k)), got {describe(lv)}")
 
 
 def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tensor, uv_dy: Tensor,

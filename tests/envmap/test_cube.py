@@ -398,6 +398,13 @@ def test_bad_input():
         cubemap(cube.expand(2, -1, -1, -1, -1), d.expand(3, -1, -1, -1))
     with pytest.raises(ValueError, match=r"max_aniso"):
         cubemap(cube, d, filter="anisotropic", dirs_dx=d, dirs_dy=d, max_aniso=0.5)
+    with pytest.raises(TypeError, match=r"lod_bias: expected a number"):
+        cubemap(cube, d, filter="trilinear", dirs_dx=d, dirs_dy=d, lod_bias="1")
+    with pytest.raises(ValueError, match=r"lod_bias: expected a scalar or \[B, H, W\]"):
+        cubemap(cube, d, filter="trilinear", dirs_dx=d, dirs_dy=d, lod_bias=torch.zeros(1, 3, 2))
+    bad = CubeMipmap([cube, cube[..., :1, :1]])
+    with pytest.raises(ValueError, match=r"cube\[1\]: expected shape \(1, 6, 3, 2, 2\)"):
+        cubemap(bad, d, filter="trilinear", dirs_dx=d, dirs_dy=d)
     with pytest.raises(ValueError, match=r"cube: expected 6 faces"):
         cube_mipmap(cube[:, :4])
     with pytest.raises(ValueError, match=r"cube: expected square faces"):
