@@ -461,14 +461,11 @@ def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tenso
     if Bt == 1:
         vals = run(None, slice(None))
     else:
-        # Entries are in point order, so batch b's are one contiguous block.
-        per = P if point is None else None
-        if per is not None:
-            vals = torch.cat([run(b, slice(b * P, (b + 1) * P)) for b in range(B)], 1)
-        else:
-            ends = torch.cumsum(count.view(B, P).sum(1), 0).tolist()
-            starts = [0] + ends[:-1]
-            vals = torch.cat([run(b, slice(s, e)) for b, (s, e) in enumerate(zip(starts, ends))], 1)
+        # One cube per batch row (B = Bt): entries are in point order, so row b's are one contiguous block.
+        ends = (list(range(P, B * P + 1, P)) if point is None
+                else torch.cumsum(count.view(B, P).sum(1), 0).tolist())
+        starts = [0] + ends[:-1]
+        vals = torch.cat([run(b, slice(s, e)) for b, (s, e) in enumerate(zip(starts, ends))], 1)
     if point is not None:
         vals = vals.new_zeros((C, B * P)).index_add(1, point, vals / nt)
     return vals.view(C, B, H, W).transpose(0, 1)
