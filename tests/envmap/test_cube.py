@@ -1,0 +1,438 @@
+"""Tests for difftex.envmap.cube: seamless cube-map sampling (cubemap, cube_mipmap)."""
+import math
+
+import pytest
+import torch
+
+import difftex
+from difftex.envmap import CubeMipmap, cube_mipmap, cube_to_direction, cubemap, direction_to_cube
+from tests.conftest import use_backend
+
+F64 = torch.float64
+MIP = ("trilinear", "nearest-mip", "anisotropic", "auto")
+
+
+def texel_dirs(S: int, dtype=F64) -> torch.Tensor:
+    """[6, S, S, 3] unit directions of the texel centres (face, row, col)."""
+    c = (torch.arange(S, dtype=dtype) + 0.5) / S
+    v, u = torch.meshgrid(c, c, indexing="ij")
+    uv = torch.stack([u, v], -1).expand(6, S, S, 2)
+    face = torch.arange(6).view(6, 1, 1).expand(6, S, S)
+    d = cube_to_direction(face, uv)
+    return d / d.norm(dim=-1, keepdim=True)
+
+
+def smooth(d: torch.Tensor) -> torch.Tensor:
+    """[..., 3] unit directions -> [..., 2] a smooth function on the sphere."""
+    x, y, z = d.unbind(-1)
+    return torch.stack([x + 0.5 * y * z, torch.sin(2 * y) + 0.3 * z], -1)
+
+
+def smooth_cube(S: int, dtype=F64) -> torch.Tensor:
+    return smooth(texel_dirs(S, dtype)).permute(0, 3, 1, 2).unsqueeze(0).contiguous()  # [1, 6, 2, S, S]
+
+
+def random_dirs(n: int, seed: int = 0, dtype=F64) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(1, 1, n, 3, generator=g, dtype=F64).to(dtype)
+    return d / d.norm(dim=-1, keepdim=True)
+
+
+def tangent_derivs(d: torch.Tensor, length: float, seed: int = 1):
+    """Two random tangent vectors of the given length per direction (a footprint on the sphere)."""
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    for _ in range(2):
+        r = torch.randn(d.shape, generator=g, dtype=F64).to(d.dtype)
+        r = r - (r * d).sum(-1, keepdim=True) * d
+        out.append(r / r.norm(dim=-1, keepdim=True) * length)
+    return out
+
+
+# ---------------------------------------------------------------- values
+
+
+@pytest.mark.parametrize("filter", ["bilinear", "trilinear"])
+def test_values_converge_to_the_function(filter):
+    """Lookups of a cube of f(texel-centre direction) agree with f.
+
+    Measured max error: bilinear 0.18-0.22 / S overall (within a texel of an edge the folded gutter texel
+    sits O(h) off its projected place), 1.8-1.9 / S^2 more than 2 texels from the edges; trilinear with a
+    one-texel footprint 0.5-0.65 / S.
+    """
+    d = random_dirs(4000)
+    want = smooth(d).permute(0, 3, 1, 2)
+    _, uv = direction_to_cube(d)
+    errs = []
+    for S in (16, 32, 64):
+        kw = {}
+        if filter == "trilinear":
+            dx, dy = tangent_derivs(d, 2.0 / S)  # about one texel: levels 0 .. 1
+            kw = dict(dirs_dx=dx, dirs_dy=dy)
+        err = (cubemap(smooth_cube(S), d, filter=filter, **kw) - want).abs().amax(1)[0]
+        errs.append(err.max().item())
+        assert errs[-1] < (0.3 if filter == "bilinear" else 0.9) / S, (S, errs[-1])
+        if filter == "bilinear":
+            inner = ((uv - 0.5).abs().amax(-1) < 0.5 - 2.0 / S)[0]
+            assert err[inner].max() < 2.5 / S ** 2
+    assert errs[2] < errs[0] / 3, errs
+
+
+def test_edge_midpoint_and_corner_are_exact_averages():
+    """At an edge the bilinear value is the mean of the two edge texels; at a corner the mean of the three."""
+    S = 4
+    cube = torch.randn(1, 6, 1, S, S, dtype=F64, generator=torch.Generator().manual_seed(3))
+    # The +X / +Z edge (x = z = 1) at y between rows 1 and 2 of both faces' boundary columns:
+    # +X's column 0 (s_c = -z = -1) meets +Z's column S - 1 (s_c = x = 1).
+    y = -(2 * (1 + 0.5) / S - 1)  # t_c = -y at the centre of row 1 of both faces
+    for eps in (1e-9, -1e-9):  # just on +X, just on +Z
+        d = torch.tensor([[[[1.0 + eps, y, 1.0 - eps]]]], dtype=F64)
+        got = cubemap(cube, d).item()
+        want = 0.5 * (cube[0, 0, 0, 1, 0] + cube[0, 4, 0, 1, S - 1]).item()
+        assert got == pytest.approx(want, abs=1e-7)
+    # The corner (1, 1, 1): +X texel (row 0, col 0), +Y texel (row S-1, col S-1), +Z texel (row 0, col S-1).
+    corner = (cube[0, 0, 0, 0, 0] + cube[0, 2, 0, S - 1, S - 1] + cube[0, 4, 0, 0, S - 1]).item() / 3
+    for d in ([1.0, 1.0 - 1e-9, 1.0 - 2e-9], [1.0 - 1e-9, 1.0, 1.0 - 2e-9], [1.0 - 2e-9, 1.0 - 1e-9, 1.0]):
+        got = cubemap(cube, torch.tensor(d, dtype=F64).view(1, 1, 1, 3)).item()
+        assert got == pytest.approx(corner, abs=1e-7)
+
+
+def test_backends_agree(backend):
+    S = 8
+    cube = torch.randn(2, 6, 3, S, S, dtype=F64, generator=torch.Generator().manual_seed(4))
+    d = random_dirs(500, seed=5).expand(2, 1, 500, 3)
+    dx, dy = tangent_derivs(d, 3.0 / S)
+    with use_backend("reference"):
+        refs = {f: cubemap(cube, d, filter=f, dirs_dx=dx, dirs_dy=dy)
+                for f in ("nearest", "bilinear", "bicubic") + MIP}
+    for f, ref in refs.items():
+        got = cubemap(cube, d, filter=f, dirs_dx=dx, dirs_dy=dy)
+        torch.testing.assert_close(got, ref, rtol=0, atol=1e-10, msg=f)
+
+
+def test_nearest_reads_the_containing_texel():
+    S = 8
+    cube = torch.randn(1, 6, 1, S, S, dtype=F64, generator=torch.Generator().manual_seed(6))
+    d = random_dirs(1000, seed=7)
+    face, uv = direction_to_cube(d)
+    col = (uv[..., 0] * S).floor().long().clamp(0, S - 1)
+    row = (uv[..., 1] * S).floor().long().clamp(0, S - 1)
+    want = cube[0, face, 0, row, col]
+    assert torch.equal(cubemap(cube, d, filter="nearest")[:, 0], want)
+
+
+# ---------------------------------------------------------------- seams
+
+
+def great_circles(n: int) -> torch.Tensor:
+    """[K, n, 3] directions along great circles: the three equators (all 12 edges, at their midpoints),
+    one through the corner (1, 1, 1) across the +X / +Y boundary there, and two tilted ones."""
+    normals = torch.tensor([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [1.0, 1.0, -2.0], [1.0, 2.0, 3.0],
+                            [0.3, -1.0, 0.7]], dtype=F64)
+    out = []
+    th = torch.arange(n, dtype=F64) * (2 * math.pi / n)
+    for nrm in normals:
+        nrm = nrm / nrm.norm()
+        a = torch.linalg.cross(nrm, torch.tensor([0.577, 0.577, 0.577], dtype=F64))
+        if nrm[0] == nrm[1] and nrm[2] == -2 * nrm[0]:
+            a = torch.tensor([1.0, 1.0, 1.0], dtype=F64)  # start exactly at the corner
+        a = a / a.norm()
+        b = torch.linalg.cross(nrm, a)
+        out.append(torch.cos(th)[:, None] * a + torch.sin(th)[:, None] * b)
+    return torch.stack(out)
+
+
+def naive_read(cube, dirs, filter, dx=None, dy=None):
+    """Per-face clamp reads without gutters: what seamless filtering must beat."""
+    if dx is not None:
+        face, uv, uv_dx, uv_dy = direction_to_cube(dirs, dirs_dx=dx, dirs_dy=dy)
+    else:
+        face, uv = direction_to_cube(dirs)
+        uv_dx = uv_dy = None
+    out = 0
+    for f in range(6):
+        v = difftex.sample(cube[:, f], uv, filter=filter, wrap="clamp", uv_dx=uv_dx, uv_dy=uv_dy)
+        out = out + v * (face == f).unsqueeze(1)
+    return out
+
+
+def seam_jumps(read, S):
+    """(largest jump between neighbouring directions across a face change, largest within a face)."""
+    d = great_circles(20000).unsqueeze(0)  # [1, K, n, 3]
+    vals = read(d)  # [1, C, K, n]
+    face, uv = direction_to_cube(d)
+    jump = (vals - vals.roll(-1, -1)).abs().amax(1)[0]  # [K, n]
+    cross = face[0] != face[0].roll(-1, -1)
+    return jump[cross].max().item(), jump[~cross].max().item()
+
+
+@pytest.mark.parametrize("filter", ["bilinear", "trilinear"])
+def test_no_seams_along_great_circles(filter):
+    S = 8
+    cube = torch.rand(1, 6, 3, S, S, dtype=F64, generator=torch.Generator().manual_seed(8))
+    def derivs(d):
+        if filter != "trilinear":
+            return {}
+        # A footprint that varies smoothly along the circle (random ones would make jumps of their own):
+        # along the circle and across it, 2.5 and 1.5 texels at face centres (levels 1 .. 2 near edges).
+        t = d.roll(-1, -2) - d.roll(1, -2)
+        t = t / t.norm(dim=-1, keepdim=True)
+        return dict(dirs_dx=t * 5.0 / S, dirs_dy=torch.linalg.cross(d, t) * 3.0 / S)
+
+    cross, inside = seam_jumps(lambda d: cubemap(cube, d, filter=filter, **derivs(d)), S)
+    assert cross <= inside, (cross, inside)
+    naive_cross, naive_inside = seam_jumps(
+        lambda d: naive_read(cube, d, filter, *derivs(d).values()), S)
+    assert naive_cross > 3 * naive_inside, (naive_cross, naive_inside)
+
+
+def test_bicubic_seamless_away_from_corners():
+    """Bicubic's 4 x 4 stencil is continuous across edges; within 2 texels of a cube corner, where three
+    faces meet and no square stencil fits, the averaged gutter corners leave a jump (measured 0.028 on
+    uniform [0, 1) texels at S = 8, against 0.0032 inside faces)."""
+    S = 8
+    cube = torch.rand(1, 6, 3, S, S, dtype=F64, generator=torch.Generator().manual_seed(8))
+    d = great_circles(20000).unsqueeze(0)
+    face, uv = direction_to_cube(d)
+    vals = cubemap(cube, d, filter="bicubic")
+    jump = (vals - vals.roll(-1, -1)).abs().amax(1)[0]
+    cross = face[0] != face[0].roll(-1, -1)
+    corner = (uv[0] - 0.5).abs().amin(-1) > 0.5 - 2.0 / S
+    assert jump[cross & ~corner].max() <= jump[~cross].max()
+    assert jump[cross & corner].max() < 0.05
+    naive = naive_read(cube, d, "bicubic")
+    naive_jump = (naive - naive.roll(-1, -1)).abs().amax(1)[0]
+    assert naive_jump[cross & ~corner].max() > 3 * naive_jump[~cross].max()
+
+
+def test_lod_bias():
+    cube, d = grad_inputs(S=8)
+    dx, dy = tangent_derivs(d.detach(), 0.3)
+    a = cubemap(cube, d, filter="trilinear", dirs_dx=dx, dirs_dy=dy, lod_bias=0.7)
+    b = cubemap(cube, d, filter="trilinear", dirs_dx=dx, dirs_dy=dy,
+                lod_bias=torch.full(d.shape[:3], 0.7, dtype=F64))
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    # A large bias reads the 1 x 1 level, the mean of each face, at the face centres only (elsewhere the
+    # 1 x 1 texel blends with the neighbouring faces' through the gutter, as any level does).
+    centres = torch.cat([torch.eye(3, dtype=F64), -torch.eye(3, dtype=F64)])[[0, 3, 1, 4, 2, 5]].view(1, 1, 6, 3)
+    top = cubemap(cube, centres, filter="trilinear", dirs_dx=dx[:, :, :6], dirs_dy=dy[:, :, :6], lod_bias=20.0)
+    torch.testing.assert_close(top[0, :, 0], cube[0].mean((-1, -2)).T, rtol=0, atol=1e-12)
+    bias = torch.full(d.shape[:3], 0.4, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda bb: cubemap(cube.detach(), d.detach(), filter="trilinear", dirs_dx=dx, dirs_dy=dy, lod_bias=bb),
+        (bias,))
+
+
+# ---------------------------------------------------------------- gradients
+
+
+EDGE_DIRS = [[1.0, 0.31, 0.97], [0.96, -0.98, 0.2], [-0.97, 0.5, -0.99], [0.1, 0.98, -0.97],
+             [1.0, 0.97, 0.96], [-0.96, -0.97, -1.0], [0.98, -1.0, 0.97]]  # edges, then corners
+
+
+def grad_inputs(dtype=F64, S=4, C=2):
+    g = torch.Generator().manual_seed(9)
+    cube = torch.rand(1, 6, C, S, S, dtype=dtype, generator=g).requires_grad_()
+    d = torch.tensor(EDGE_DIRS, dtype=dtype).view(1, 1, -1, 3).requires_grad_()
+    return cube, d
+
+
+@pytest.mark.parametrize("filter", ["bilinear", "bicubic"])
+def test_gradcheck_single_level(filter):
+    cube, d = grad_inputs()
+    assert torch.autograd.gradcheck(lambda c, x: cubemap(c, x, filter=filter), (cube, d))
+
+
+def test_nearest_gradient_reaches_the_cube_only():
+    cube, d = grad_inputs()
+    assert torch.autograd.gradcheck(lambda c: cubemap(c, d.detach(), filter="nearest"), (cube,))
+    out = cubemap(cube, d, filter="nearest")
+    gd, = torch.autograd.grad(out.sum(), d)
+    assert torch.equal(gd, torch.zeros_like(gd))
+
+
+@pytest.mark.parametrize("filter", ["trilinear", "anisotropic"])
+def test_gradcheck_mip(filter):
+    cube, d = grad_inputs(S=8)
+    # Fractional levels (no kink of the level blend) and, for anisotropic, a 3:1 footprint whose taps
+    # cross the edges.
+    g = torch.Generator().manual_seed(10)
+    dx = (torch.randn(d.shape, generator=g, dtype=F64) * 0.13).requires_grad_()
+    dy = (torch.randn(d.shape, generator=g, dtype=F64) * (0.05 if filter == "anisotropic" else 0.13))
+    dy.requires_grad_()
+    assert torch.autograd.gradcheck(
+        lambda c, x, a, b: cubemap(c, x, filter=filter, dirs_dx=a, dirs_dy=b), (cube, d, dx, dy))
+
+
+def test_cube_mipmap_gradient_reaches_the_faces():
+    cube, d = grad_inputs(S=8)
+    dx, dy = tangent_derivs(d.detach(), 0.6)
+    f = lambda c: cubemap(cube_mipmap(c), d.detach(), filter="trilinear", dirs_dx=dx, dirs_dy=dy)
+    assert torch.autograd.gradcheck(f, (cube,))
+    mm = cube_mipmap(cube)
+    assert isinstance(mm, CubeMipmap) and [lv.shape[-1] for lv in mm] == [8, 4, 2, 1]
+    torch.testing.assert_close(mm[1][0, 2, 1, 0, 0], cube[0, 2, 1, :2, :2].mean())
+    torch.testing.assert_close(f(cube), cubemap(cube, d, filter="trilinear", dirs_dx=dx, dirs_dy=dy))
+
+
+# ---------------------------------------------------------------- special directions
+
+
+def test_zero_and_nonfinite_directions():
+    cube, _ = grad_inputs()
+    d = torch.tensor([[0.0, 0, 0], [float("nan"), 1, 0], [0.3, -0.2, 1.0], [float("inf"), 0, 0]],
+                     dtype=F64).view(1, 1, 4, 3).requires_grad_()
+    for f in ("bilinear", "trilinear"):
+        kw = dict(dirs_dx=torch.full_like(d, 0.1), dirs_dy=torch.full_like(d, -0.05)) if f == "trilinear" else {}
+        out = cubemap(cube, d, filter=f, **kw)
+        assert torch.equal(out[..., 0], torch.zeros_like(out[..., 0]))
+        assert out[..., 1].isnan().all() and out[..., 3].isnan().all()
+        assert out[..., 2].isfinite().all()
+        gc, gd = torch.autograd.grad(out[..., :3].nan_to_num().sum() + out[..., 2].sum(), (cube, d))
+        assert gc.isfinite().all() and gd.isfinite().all()
+        assert torch.equal(gd[..., 0, :], torch.zeros(1, 1, 3, dtype=F64))
+        assert torch.equal(gd[..., 1, :], torch.zeros(1, 1, 3, dtype=F64))
+        assert gd[..., 2, :].abs().sum() > 0
+
+
+def test_length_does_not_matter():
+    cube, d = grad_inputs()
+    d = d.detach()
+    dx, dy = tangent_derivs(d / d.norm(dim=-1, keepdim=True), 0.3)
+    a = cubemap(cube, d, filter="trilinear", dirs_dx=dx * d.norm(dim=-1, keepdim=True),
+                dirs_dy=dy * d.norm(dim=-1, keepdim=True))
+    # Scaling a direction by 5 scales its derivative by 5 too (d(5 r) = 5 dr).
+    b = cubemap(cube, 5 * d, filter="trilinear", dirs_dx=5 * dx * d.norm(dim=-1, keepdim=True),
+                dirs_dy=5 * dy * d.norm(dim=-1, keepdim=True))
+    torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+
+
+# ---------------------------------------------------------------- batch / dtype
+
+
+@pytest.mark.parametrize("filter", ["bilinear", "trilinear", "auto"])
+def test_batch_dtype_and_broadcast(dtype, filter):
+    S = 8
+    g = torch.Generator().manual_seed(11)
+    cube = torch.rand(3, 6, 2, S, S, dtype=F64, generator=g)
+    d = torch.randn(3, 4, 5, 3, dtype=F64, generator=g)
+    dx, dy = tangent_derivs(d / d.norm(dim=-1, keepdim=True), 0.4)
+    kw = lambda i: dict(dirs_dx=dx[i:i + 1].to(dtype), dirs_dy=dy[i:i + 1].to(dtype)) if filter != "bilinear" \
+        else {}
+    kwb = dict(dirs_dx=dx.to(dtype), dirs_dy=dy.to(dtype)) if filter != "bilinear" else {}
+    out = cubemap(cube.to(dtype), d.to(dtype), filter=filter, **kwb)
+    assert out.shape == (3, 2, 4, 5) and out.dtype == dtype
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    for i in range(3):
+        one = cubemap(cube[i:i + 1].to(dtype), d[i:i + 1].to(dtype), filter=filter, **kw(i))
+        torch.testing.assert_close(out[i:i + 1], one, rtol=0, atol=tol)
+    # B = 1 cube over 3 direction batches, and 1 direction batch over 3 cubes
+    shared = cubemap(cube[:1].to(dtype), d.to(dtype), filter=filter, **kwb)
+    for i in range(3):
+        one = cubemap(cube[:1].to(dtype), d[i:i + 1].to(dtype), filter=filter, **kw(i))
+        torch.testing.assert_close(shared[i:i + 1], one, rtol=0, atol=tol)
+    many = cubemap(cube.to(dtype), d[:1].to(dtype), filter=filter, **kw(0))
+    for i in range(3):
+        one = cubemap(cube[i:i + 1].to(dtype), d[:1].to(dtype), filter=filter, **kw(0))
+        torch.testing.assert_close(many[i:i + 1], one, rtol=0, atol=tol)
+    # float32 agrees with float64
+    if dtype == torch.float32:
+        ref = cubemap(cube, d, filter=filter, **({k: v.double() for k, v in kwb.items()}))
+        torch.testing.assert_close(out.double(), ref, rtol=0, atol=1e-4)
+
+
+def test_mipmap_input_equals_tensor_input():
+    cube, d = grad_inputs(S=8)
+    dx, dy = tangent_derivs(d.detach(), 0.5)
+    for f in MIP + ("bilinear", "bicubic", "nearest"):
+        a = cubemap(cube, d, filter=f, dirs_dx=dx, dirs_dy=dy)
+        b = cubemap(cube_mipmap(cube), d, filter=f, dirs_dx=dx, dirs_dy=dy)
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+
+
+def test_odd_face_size():
+    S = 5
+    d = random_dirs(2000, seed=12)
+    want = smooth(d).permute(0, 3, 1, 2)
+    got = cubemap(smooth_cube(S), d)
+    assert (got - want).abs().max() < 6.0 / S
+    dx, dy = tangent_derivs(d, 3.0 / S)
+    got = cubemap(smooth_cube(S), d, filter="trilinear", dirs_dx=dx, dirs_dy=dy)
+    assert (got - want).abs().max() < 12.0 / S
+
+
+# ---------------------------------------------------------------- bad input
+
+
+def test_bad_input():
+    cube = torch.rand(1, 6, 3, 4, 4)
+    d = torch.randn(1, 2, 2, 3)
+    with pytest.raises(ValueError, match=r"cube: expected 5-D"):
+        cubemap(cube[0], d)
+    with pytest.raises(ValueError, match=r"cube: expected 6 faces"):
+        cubemap(cube[:, :5], d)
+    with pytest.raises(ValueError, match=r"cube: expected square faces.*4x3"):
+        cubemap(cube[..., :3], d)
+    with pytest.raises(TypeError, match=r"cube: expected a floating-point tensor"):
+        cubemap(cube.long(), d)
+    with pytest.raises(ValueError, match=r"dirs: expected last dimension 3"):
+        cubemap(cube, d[..., :2])
+    with pytest.raises(ValueError, match=r"dirs: expected 4-D"):
+        cubemap(cube, d[0])
+    with pytest.raises(TypeError, match=r"dirs: expected dtype torch.float32 like cube"):
+        cubemap(cube, d.double())
+    for f in MIP:
+        with pytest.raises(ValueError, match=r"dirs_dx: required by filter"):
+            cubemap(cube, d, filter=f)
+    with pytest.raises(ValueError, match=r"dirs_dy: required by filter"):
+        cubemap(cube, d, filter="trilinear", dirs_dx=d)
+    with pytest.raises(ValueError, match=r"dirs_dx: expected last dimension 3"):
+        cubemap(cube, d, filter="trilinear", dirs_dx=d[..., :2], dirs_dy=d)
+    with pytest.raises(ValueError, match=r"dirs_dy: expected shape \[B, H, W, 3\]"):
+        cubemap(cube, d, filter="trilinear", dirs_dx=d, dirs_dy=d[:, :1])
+    with pytest.raises(ValueError, match=r"filter: 'ewa' is not supported"):
+        cubemap(cube, d, filter="ewa", dirs_dx=d, dirs_dy=d)
+    with pytest.raises(ValueError, match=r"filter: unknown filter"):
+        cubemap(cube, d, filter="linear")
+    with pytest.raises(ValueError, match=r"batch sizes do not match"):
+        cubemap(cube.expand(2, -1, -1, -1, -1), d.expand(3, -1, -1, -1))
+    with pytest.raises(ValueError, match=r"max_aniso"):
+        cubemap(cube, d, filter="anisotropic", dirs_dx=d, dirs_dy=d, max_aniso=0.5)
+    with pytest.raises(TypeError, match=r"lod_bias: expected a number"):
+        cubemap(cube, d, filter="trilinear", dirs_dx=d, dirs_dy=d, lod_bias="1")
+    with pytest.raises(ValueError, match=r"lod_bias: expected a scalar or \[B, H, W\]"):
+        cubemap(cube, d, filter="trilinear", dirs_dx=d, dirs_dy=d, lod_bias=torch.zeros(1, 3, 2))
+    bad = CubeMipmap([cube, cube[..., :1, :1]])
+    with pytest.raises(ValueError, match=r"cube\[1\]: expected shape \(1, 6, 3, 2, 2\)"):
+        cubemap(bad, d, filter="trilinear", dirs_dx=d, dirs_dy=d)
+    with pytest.raises(ValueError, match=r"cube: expected 6 faces"):
+        cube_mipmap(cube[:, :4])
+    with pytest.raises(ValueError, match=r"cube: expected square faces"):
+        cube_mipmap(cube[..., :2, :])
+
+
+@pytest.mark.parametrize("filter", ["anisotropic", "auto"])
+def test_anisotropic_taps_cross_edges_along_the_great_circle(filter):
+    """A long footprint near an edge: the taps past the edge are reprojected onto the next face.
+
+    The footprint is a vector of the face plane, so its taps lie on the plane line, i.e. on a great
+    circle; the result must match the mean of f over those tap directions up to the filtering error of
+    a smooth f (measured 0.064 / S); taps clamped into the face's gutter instead miss by 0.77 / S.
+    """
+    S, N = 16, 32
+    g = torch.Generator().manual_seed(13)
+    face = torch.arange(6).repeat(4)
+    st = torch.rand(24, 2, generator=g, dtype=F64) * 1.6 - 0.8
+    st[:, 0] = 0.75 * torch.where(torch.rand(24, generator=g) < 0.5, -1.0, 1.0)  # close to the left / right edge
+    p = cube_to_direction(face, (st + 1) / 2)  # on the face plane, m_a = 1
+    e_s = cube_to_direction(face, torch.tensor([1.0, 0.5], dtype=F64).expand(24, 2)) - \
+        cube_to_direction(face, torch.tensor([0.0, 0.5], dtype=F64).expand(24, 2))  # the plane's s axis, length 2
+    dxp = e_s * 0.5 * 2.0  # 2.0 face units ([-1, 1]), a texel per tap: up to 0.75 past the edge
+    dyp = torch.linalg.cross(p, dxp)
+    dyp = dyp / dyp.norm(dim=-1, keepdim=True) * (2.0 / N) * 0.9  # minor axis: N taps exactly
+    offs = ((torch.arange(N, dtype=F64) + 0.5) / N - 0.5)
+    taps = p[:, None, :] + offs[None, :, None] * dxp[:, None, :]
+    want = smooth(taps / taps.norm(dim=-1, keepdim=True)).mean(1).T  # [2, 24]
+    got = cubemap(smooth_cube(S), p.view(1, 1, 24, 3), filter=filter, max_aniso=N,
+                  dirs_dx=dxp.view(1, 1, 24, 3), dirs_dy=dyp.view(1, 1, 24, 3))[0, :, 0]
+    assert (got - want).abs().max() < 0.2 / S
