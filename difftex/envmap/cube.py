@@ -66,10 +66,10 @@ Cost (CPU, 256^2 faces, 256^2 directions, forward + backward): bilinear
 """
 from __future__ import annotations
 
+import math
+import numbers
 from functools import lru_cache
 from typing import Iterator, Optional, Sequence, Union
-
-import numbers
 
 import torch
 from torch import Tensor
@@ -342,6 +342,53 @@ def cubemap(
     ok = ok.expand(B, H, W).unsqueeze(1)
     zero = zero.expand(B, H, W).unsqueeze(1)
     return torch.where(zero, 0.0, torch.where(ok, out, float("nan")))
+
+
+def cube_to_equirect(
+    cube: Union[Tensor, CubeMipmap],
+    size: Sequence[int],
+    *,
+    filter: str = "anisotropic",
+    lod_bias: float = 0.0,
+    max_aniso: float = 16,
+) -> Tensor:
+    """Resample a cube map into a latitude-longitude (equirectangular) map.
+
+    Every pixel centre of the map (``difftex.envmap.equirect_uv_to_direction``'s
+    convention, row 0 straight up) is looked up with :func:`cubemap`, with the
+    analytic derivatives of its direction per map column / row, so a map
+    smaller than the cube is filtered by its footprint rather than aliased.
+
+    Args:
+        cube: [B, 6, C, S, S] faces or a :class:`CubeMipmap`, as for :func:`cubemap`.
+        size: (H, W) of the map, ints >= 1 (2:1 for square texels).
+        filter: any filter :func:`cubemap` takes. The default "anisotropic"
+            follows the map's stretch towards the poles (a row there covers
+            a thin ring of directions).
+        lod_bias, max_aniso: as for :func:`cubemap` (lod_bias a number).
+
+    Returns:
+        [B, C, H, W], the cube's dtype and device.
+
+    Differentiable w.r.t. the cube. Raises ValueError / TypeError naming
+    ``size`` for anything but two ints >= 1, and what :func:`cubemap` raises.
+    """
+    if (not isinstance(size, (tuple, list)) or len(size) != 2
+            or any(isinstance(n, bool) or not isinstance(n, int) for n in size)):
+        raise TypeError(f"size: expected (H, W) ints >= 1, got {size!r}")
+    H, W = size
+    if H < 1 or W < 1:
+        raise ValueError(f"size: expected (H, W) ints >= 1, got {tuple(size)}")
+    base = cube.levels[0] if isinstance(cube, CubeMipmap) else _check_cube(cube)
+    kw = dict(dtype=base.dtype, device=base.device)
+    v, u = torch.meshgrid((torch.arange(H, **kw) + 0.5) / H, (torch.arange(W, **kw) + 0.5) / W, indexing="ij")
+    # dirs = (sin t sin p, cos t, -sin t cos p), p = 2 pi u - pi, t = pi v: its derivatives per column / row.
+    phi, theta = u * (2 * math.pi) - math.pi, v * math.pi
+    st, ct, sp, cp = theta.sin(), theta.cos(), phi.sin(), phi.cos()
+    dirs = torch.stack((st * sp, ct, -st * cp), -1).unsqueeze(0)
+    dx = torch.stack((st * cp, torch.zeros_like(st), st * sp), -1).unsqueeze(0) * (2 * math.pi / W)
+    dy = torch.stack((ct * sp, -st, -ct * cp), -1).unsqueeze(0) * (math.pi / H)
+    return cubemap(cube, dirs, filter=filter, dirs_dx=dx, dirs_dy=dy, lod_bias=lod_bias, max_aniso=max_aniso)
 
 
 def _face_derivs(dirs: Tensor, dds: list[Tensor], face: Tensor, use: Tensor) -> list[Tensor]:
