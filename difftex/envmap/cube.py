@@ -67,7 +67,6 @@ Cost (CPU, 256^2 faces, 256^2 directions, forward + backward): bilinear
 from __future__ import annotations
 
 import math
-import numbers
 from functools import lru_cache
 from typing import Iterator, Optional, Sequence, Union
 
@@ -78,7 +77,8 @@ from .._checks import broadcast_batch, check_float, check_same, describe
 from ..mapping.common import EPS, cube_tables, pick
 from ..texture.filters.separable import separable_sample
 from ..texture.filters.trilinear import mip_blend, per_level
-from ..texture.options import DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_filter, check_number
+from ..texture.options import (DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_bias, check_filter,
+                               check_number)
 from ..texture.lod import level, log2_length
 from ..texture.pyramid.mipmap import level_count, mipmap
 from ..texture.sample import sample
@@ -307,7 +307,7 @@ def cubemap(
                 raise ValueError(f"{name}: expected shape [B, H, W, 3] = [{Bd}, {H}, {W}, 3] like dirs, "
                                  f"got {describe(d)}")
             derivs.append(d)
-    bias = _check_bias(lod_bias, dirs, base)
+    bias = check_bias(lod_bias, dirs, "dirs", base, "cube", dims="H, W")
     if isinstance(cube, CubeMipmap):
         _check_levels(cube)
     sizes = [Bt, Bd] + [d.shape[0] for d in derivs]
@@ -431,21 +431,6 @@ def _log2_length(dirs: Tensor, dds: list[Tensor], face: Tensor, uv: Tensor, S: i
         num = num + w * torch.where(use, other, 0.0)
         den = den + w
     return num / den
-
-
-def _check_bias(lod_bias: object, dirs: Tensor, base: Tensor) -> Union[float, Tensor]:
-    """lod_bias as a float or a validated tensor (scalar or [B, H, W] like dirs)."""
-    B, H, W, _ = dirs.shape
-    if isinstance(lod_bias, Tensor):
-        check_float("lod_bias", lod_bias, (0, 3), shape_doc=f"scalar or [B, H, W] = [{B}, {H}, {W}]")
-        check_same("lod_bias", lod_bias, "cube", base)
-        if lod_bias.dim() == 3 and tuple(lod_bias.shape[1:]) != (H, W):
-            raise ValueError(f"lod_bias: expected a scalar or [B, H, W] = [{B}, {H}, {W}] like dirs, "
-                             f"got {describe(lod_bias)}")
-        return lod_bias
-    if isinstance(lod_bias, bool) or not isinstance(lod_bias, numbers.Real):
-        raise TypeError(f"lod_bias: expected a number or a float tensor [B, H, W], got {type(lod_bias).__name__}")
-    return float(lod_bias)
 
 
 def _check_levels(pyramid: CubeMipmap) -> None:

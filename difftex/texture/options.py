@@ -3,6 +3,11 @@ from __future__ import annotations
 
 import math
 import numbers
+from typing import Union
+
+from torch import Tensor
+
+from .._checks import check_float, check_same, describe
 
 # Filters that read one texture level; the value is the per-axis kernel.
 SEPARABLE = {"nearest": "nearest", "bilinear": "linear", "bicubic": "cubic"}
@@ -34,3 +39,25 @@ def check_number(name: str, value: object, minimum: float, maximum: float = math
     if not (math.isfinite(value) and minimum <= value <= maximum):
         raise ValueError(f"{name}: expected a finite number{want}, got {value!r}")
     return float(value)
+
+
+def check_bias(lod_bias: object, points: Tensor, points_name: str, ref: Tensor, ref_name: str,
+               dims: str = "Ho, Wo") -> Union[float, Tensor]:
+    """``lod_bias`` as a float, or a float tensor: a scalar or [B, ...] with the pixel shape of ``points``.
+
+    ``points`` is [B, H, W, K] (uv, directions), named ``points_name`` in
+    the messages; the tensor must share ``ref``'s dtype and device. ``dims``
+    names the pixel axes in the messages. TypeError / ValueError naming
+    lod_bias otherwise.
+    """
+    B, H, W = points.shape[:3]
+    shape = f"[B, {dims}] = [{B}, {H}, {W}]"
+    if isinstance(lod_bias, Tensor):
+        check_float("lod_bias", lod_bias, (0, 3), shape_doc=f"scalar or {shape}")
+        check_same("lod_bias", lod_bias, ref_name, ref)
+        if lod_bias.dim() == 3 and tuple(lod_bias.shape[1:]) != (H, W):
+            raise ValueError(f"lod_bias: expected a scalar or {shape} like {points_name}, got {describe(lod_bias)}")
+        return lod_bias
+    if isinstance(lod_bias, bool) or not isinstance(lod_bias, numbers.Real):
+        raise TypeError(f"lod_bias: expected a number or a float tensor [B, {dims}], got {type(lod_bias).__name__}")
+    return float(lod_bias)

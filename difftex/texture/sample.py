@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-import numbers
 from typing import Optional, Union
 
 import torch
@@ -13,7 +12,8 @@ from .filters.ewa import ewa_points
 from .filters.separable import separable_sample
 from .filters.trilinear import Levels, TexturePyramid, trilinear_points
 from .lod import ellipse, footprint
-from .options import DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_filter, check_number
+from .options import (DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_bias, check_filter,
+                      check_number)
 from .pyramid.mipmap import Mipmap, level_count, mipmap
 from .taps import levels_read, taps
 from .wrap import Wrap, parse_wrap
@@ -110,7 +110,7 @@ def sample(
     tolerance = check_number("tolerance", tolerance, 0)
     _, Ho, Wo, _ = uv.shape
     derivs = _check_derivatives(filter, uv, texture, uv_dx, uv_dy)
-    bias = _check_bias(lod_bias, uv, texture)
+    bias = check_bias(lod_bias, uv, "uv", texture, "texture")
     sizes = [texture.shape[0], uv.shape[0]] + [d.shape[0] for d in derivs]
     names = ["texture", "uv", "uv_dx", "uv_dy"][:len(sizes)]
     if isinstance(bias, Tensor) and bias.dim() == 3:
@@ -148,20 +148,6 @@ def _check_derivatives(filter: str, uv: Tensor, texture: Tensor, uv_dx: object, 
             raise ValueError(f"{name}: expected shape [B, Ho, Wo, 2] = [{B}, {Ho}, {Wo}, 2] like uv, "
                              f"got {describe(d)}")
     return [uv_dx, uv_dy]  # type: ignore[list-item]
-
-
-def _check_bias(lod_bias: object, uv: Tensor, texture: Tensor) -> Union[float, Tensor]:
-    if isinstance(lod_bias, Tensor):
-        B, Ho, Wo, _ = uv.shape
-        check_float("lod_bias", lod_bias, (0, 3), shape_doc=f"scalar or [B, Ho, Wo] = [{B}, {Ho}, {Wo}]")
-        check_same("lod_bias", lod_bias, "texture", texture)
-        if lod_bias.dim() == 3 and tuple(lod_bias.shape[1:]) != (Ho, Wo):
-            raise ValueError(f"lod_bias: expected a scalar or [B, Ho, Wo] = [{B}, {Ho}, {Wo}] like uv, "
-                             f"got {describe(lod_bias)}")
-        return lod_bias
-    if isinstance(lod_bias, bool) or not isinstance(lod_bias, numbers.Real):
-        raise TypeError(f"lod_bias: expected a number or a float tensor [B, Ho, Wo], got {type(lod_bias).__name__}")
-    return float(lod_bias)
 
 
 def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy: Tensor,
