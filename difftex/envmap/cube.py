@@ -76,7 +76,7 @@ from torch import Tensor
 from .._checks import broadcast_batch, check_float, check_same, describe
 from ..mapping.common import EPS, cube_tables, pick
 from ..texture.filters.separable import separable_sample
-from ..texture.filters.trilinear import mip_blend, per_level
+from ..texture.filters.trilinear import mip_blend, per_level, spread_taps
 from ..texture.options import (DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_bias, check_filter,
                                check_number)
 from ..texture.lod import level, log2_length
@@ -470,13 +470,7 @@ def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tenso
         # One entry per tap, at the tap's own face: a tap past an edge is
         # reprojected (face plane -> direction -> face), so taps follow the
         # great circle of the major axis onto the neighbouring faces.
-        M = pts.shape[0]
-        point = torch.repeat_interleave(torch.arange(M, device=pts.device), count)
-        start = torch.cumsum(count, 0) - count
-        i = torch.arange(point.numel(), device=pts.device) - start.index_select(0, point)
-        nt = count.to(pts.dtype).index_select(0, point)
-        offset = ((i.to(pts.dtype) + 0.5) / nt - 0.5).unsqueeze(-1)
-        tap = torch.addcmul(pts.index_select(0, point), axis.index_select(0, point), offset)
+        point, tap, nt = spread_taps(pts, axis, count)
         fc = fc.index_select(0, point)
         fc, tap = direction_to_cube(cube_to_direction(fc, tap))
         pts, D = tap, D.index_select(0, point)

@@ -281,20 +281,29 @@ def trilinear_points(levels: Levels, uv: Tensor, D: Tensor, wrap_u: str, wrap_v:
     return torch.where(ok, out, float("nan"))
 
 
+def spread_taps(uv: Tensor, axis: Tensor, count: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The anisotropic taps as one flat list: point m's ``count[m]`` taps at ``uv + ((i + 1/2) / count - 1/2) axis``.
+
+    uv, axis: [M, 2]; count: [M] int64 >= 1. Returns (point [T] int64, the
+    point of each tap; taps [T, 2]; count [T] of the tap's point, in uv's
+    dtype), taps ordered by point; differentiable in uv and axis.
+    """
+    point = torch.repeat_interleave(torch.arange(uv.shape[0], device=uv.device), count)
+    start = torch.cumsum(count, 0) - count
+    # index_select: several times faster than advanced indexing on CPU.
+    i = torch.arange(point.numel(), device=uv.device) - start.index_select(0, point)
+    nt = count.to(uv.dtype).index_select(0, point)
+    offset = ((i.to(uv.dtype) + 0.5) / nt - 0.5).unsqueeze(-1)
+    return point, torch.addcmul(uv.index_select(0, point), axis.index_select(0, point), offset), nt
+
+
 def _torch_taps(levels: Levels, uv: Tensor, D: Tensor, wrap_u: str, wrap_v: str, border: float, nearest_mip: bool,
                 axis: Tensor | None, count: Tensor | None) -> Tensor:
     """``trilinear_points`` in torch ops: the taps flattened into one list (point, tap), one ``mip_blend``."""
     if count is not None:
-        M = uv.shape[0]
-        point = torch.repeat_interleave(torch.arange(M, device=uv.device), count)
-        start = torch.cumsum(count, 0) - count
-        # index_select: several times faster than advanced indexing on CPU.
-        i = torch.arange(point.numel(), device=uv.device) - start.index_select(0, point)
-        nt = count.to(uv.dtype).index_select(0, point)
-        offset = ((i.to(uv.dtype) + 0.5) / nt - 0.5).unsqueeze(-1)
-        taps = torch.addcmul(uv.index_select(0, point), axis.index_select(0, point), offset)
+        point, taps, nt = spread_taps(uv, axis, count)
         vals = _torch_taps(levels, taps, D.index_select(0, point), wrap_u, wrap_v, border, nearest_mip, None, None)
-        return uv.new_zeros((vals.shape[0], M)).index_add(1, point, vals / nt)
+        return uv.new_zeros((vals.shape[0], uv.shape[0])).index_add(1, point, vals / nt)
     if isinstance(levels, TexturePyramid):
         tex = levels.texture
         if (single_level() == "grid_sample" and torch.is_grad_enabled()
