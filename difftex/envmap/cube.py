@@ -68,7 +68,7 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
-from typing import Iterator, Optional, Sequence, Union
+from typing import Optional, Sequence, Union
 
 import torch
 from torch import Tensor
@@ -80,7 +80,7 @@ from ..texture.filters.trilinear import mip_blend, per_level, spread_taps
 from ..texture.options import (DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_bias, check_filter,
                                check_number)
 from ..texture.lod import level, log2_length
-from ..texture.pyramid.mipmap import level_count, mipmap
+from ..texture.pyramid.mipmap import Pyramid, level_count, mipmap
 from ..texture.sample import sample
 from ..texture.taps import taps
 from .directions import cube_to_direction, direction_to_cube
@@ -93,30 +93,14 @@ EDGE_BAND = 0.25
 GUTTER = {"nearest": 1, "bilinear": 1, "bicubic": 2}
 
 
-class CubeMipmap:
+class CubeMipmap(Pyramid):
     """The mip pyramids of the six faces of a cube map: levels ``[B, 6, C, S_k, S_k]``, level 0 the faces.
 
     Build one with :func:`cube_mipmap`; :func:`cubemap` accepts it in place of
     the faces. The levels are ordinary tensors in the autograd graph.
     """
 
-    __slots__ = ("levels",)
-
-    def __init__(self, levels: Sequence[Tensor]):
-        self.levels = list(levels)
-
-    def __len__(self) -> int:
-        return len(self.levels)
-
-    def __getitem__(self, k: int) -> Tensor:
-        return self.levels[k]
-
-    def __iter__(self) -> Iterator[Tensor]:
-        return iter(self.levels)
-
-    @property
-    def base(self) -> Tensor:
-        return self.levels[0]
+    __slots__ = ()
 
     def __repr__(self) -> str:
         B, _, C = self.levels[0].shape[:3]

@@ -177,13 +177,8 @@ def build_levels(texture: Tensor, n: int) -> list[Tensor]:
     return levels
 
 
-class Mipmap:
-    """A mip pyramid: a list of levels ``[B, C, H_k, W_k]``, level 0 the base.
-
-    Build one with ``difftex.mipmap``. The levels are ordinary tensors in the
-    autograd graph; ``difftex.sample`` accepts a Mipmap wherever it accepts a
-    texture (the single-level filters read level 0).
-    """
+class Pyramid:
+    """A list of levels, level 0 the base: what every pyramid type (Mipmap, the cube's) shares."""
 
     __slots__ = ("levels",)
 
@@ -202,6 +197,17 @@ class Mipmap:
     @property
     def base(self) -> Tensor:
         return self.levels[0]
+
+
+class Mipmap(Pyramid):
+    """A mip pyramid: a list of levels ``[B, C, H_k, W_k]``, level 0 the base.
+
+    Build one with ``difftex.mipmap``. The levels are ordinary tensors in the
+    autograd graph; ``difftex.sample`` accepts a Mipmap wherever it accepts a
+    texture (the single-level filters read level 0).
+    """
+
+    __slots__ = ()
 
     @property
     def shape(self) -> torch.Size:
