@@ -1,0 +1,112 @@
+"""sample3d: 3D textures against F.grid_sample on 5-D input, gradients, batches, bad input."""
+import pytest
+import torch
+import torch.nn.functional as F
+
+from difftex.texture.volume import sample3d
+
+# grid_sample's padding mode for each wrap (align_corners=False); repeat goes through a circular pad.
+PADDING = {"clamp": "border", "mirror": "reflection", "border": "zeros"}
+
+
+def _grid_sample(volume, uvw, mode, wrap):
+    """grid_sample reading like sample3d: [B, C, ...]; repeat as a one-texel circular pad and folded uvw."""
+    B = uvw.shape[0]
+    pts = uvw.reshape(B, 1, 1, -1, 3)
+    if wrap == "repeat":
+        D, H, W = volume.shape[2:]
+        volume = F.pad(volume, (1, 1, 1, 1, 1, 1), mode="circular")
+        n = pts.new_tensor([W, H, D])
+        pts = ((pts - torch.floor(pts)) * n + 1) / (n + 2)
+        pad = "border"
+    else:
+        pad = PADDING[wrap]
+    out = F.grid_sample(volume.expand(B, -1, -1, -1, -1), 2 * pts - 1, mode=mode, padding_mode=pad,
+                        align_corners=False)
+    return out.reshape(B, volume.shape[1], *uvw.shape[1:-1])
+
+
+@pytest.mark.parametrize("wrap", ["repeat", "clamp", "mirror", "border"])
+@pytest.mark.parametrize("filt", ["nearest", "linear"])
+def test_matches_grid_sample(filt, wrap, device, dtype):
+    g = torch.Generator().manual_seed(0)
+    vol = torch.rand(2, 3, 4, 5, 6, generator=g, dtype=dtype).to(device)
+    uvw = (torch.rand(2, 7, 9, 3, generator=g, dtype=dtype) * 2.4 - 0.7).to(device)
+    got = sample3d(vol, uvw, filter=filt, wrap=wrap)
+    ref = _grid_sample(vol, uvw, "bilinear" if filt == "linear" else "nearest", wrap)
+    assert got.shape == (2, 3, 7, 9) and got.dtype == dtype
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    assert torch.allclose(got, ref, atol=tol, rtol=0)
+
+
+def test_texel_centres_read_their_texel_and_axes_order():
+    vol = torch.arange(2 * 3 * 4, dtype=torch.float64).view(1, 1, 2, 3, 4)
+    d, i, j = torch.meshgrid(*(torch.arange(n, dtype=torch.float64) for n in (2, 3, 4)), indexing="ij")
+    uvw = torch.stack(((j + 0.5) / 4, (i + 0.5) / 3, (d + 0.5) / 2), -1).unsqueeze(0)
+    for filt in ("nearest", "linear"):
+        assert torch.allclose(sample3d(vol, uvw, filter=filt), vol, atol=1e-12, rtol=0)
+
+
+def test_wrap_per_axis_gradients_agree_with_grid_sample():
+    g = torch.Generator().manual_seed(1)
+    vol = torch.rand(1, 2, 3, 4, 5, generator=g, dtype=torch.float64, requires_grad=True)
+    uvw = (torch.rand(1, 40, 3, generator=g, dtype=torch.float64) * 0.8 + 0.1).requires_grad_()
+    # Inside [0.1, 0.9] clamp and border agree with grid_sample's border except past the outer texel centres.
+    wrap = ("clamp", "clamp", "clamp")
+    a = sample3d(vol, uvw, wrap=wrap)
+    b = _grid_sample(vol, uvw, "bilinear", "clamp")
+    w = torch.randn(a.shape, generator=g, dtype=torch.float64)
+    ga = torch.autograd.grad((a * w).sum(), (vol, uvw))
+    gb = torch.autograd.grad((b * w).sum(), (vol, uvw))
+    assert torch.allclose(ga[0], gb[0], atol=1e-12) and torch.allclose(ga[1], gb[1], atol=1e-10)
+
+
+def test_gradcheck():
+    g = torch.Generator().manual_seed(2)
+    vol = torch.rand(2, 1, 2, 2, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    uvw = (torch.rand(2, 3, 3, generator=g, dtype=torch.float64) * 2 - 0.5).requires_grad_()
+    assert torch.autograd.gradcheck(lambda v, u: sample3d(v, u, wrap=("repeat", "mirror", "border"),
+                                                          border_value=0.3), (vol, uvw))
+    assert torch.autograd.gradcheck(lambda v, u: sample3d(v, u, filter="nearest", wrap="clamp"), (vol, uvw))
+    assert torch.autograd.gradgradcheck(lambda v, u: sample3d(v, u, wrap="clamp"), (vol[:1], uvw[:1, :2]))
+
+
+def test_batches_broadcast():
+    g = torch.Generator().manual_seed(3)
+    vol = torch.rand(3, 2, 3, 4, 5, generator=g)
+    uvw = torch.rand(3, 6, 3, generator=g)
+    one_vol = sample3d(vol[:1], uvw)
+    assert torch.allclose(one_vol, sample3d(vol[:1].expand(3, -1, -1, -1, -1), uvw))
+    one_uvw = sample3d(vol, uvw[:1])
+    assert torch.allclose(one_uvw, sample3d(vol, uvw[:1].expand(3, -1, -1)))
+    per = torch.cat([sample3d(vol[k:k + 1], uvw[k:k + 1]) for k in range(3)])
+    assert torch.allclose(sample3d(vol, uvw), per)
+
+
+def test_border_value_and_non_finite():
+    vol = torch.ones(1, 1, 2, 2, 2)
+    uvw = torch.tensor([[[5.0, 0.5, 0.5], [0.5, 0.5, 0.5], [float("nan"), 0.5, 0.5]]])
+    out = sample3d(vol, uvw, wrap="border", border_value=0.25)
+    assert out[0, 0, 0] == 0.25 and out[0, 0, 1] == 1 and torch.isnan(out[0, 0, 2])
+    huge = torch.tensor([[[1e30, -1e30, 3e38]]])
+    assert torch.isfinite(sample3d(vol, huge, wrap="repeat")).all()
+
+
+def test_bad_input():
+    vol = torch.zeros(1, 1, 2, 2, 2)
+    with pytest.raises(ValueError, match=r"volume: expected 5-D \[B, C, D, H, W\], got shape \(1, 2, 2\)"):
+        sample3d(torch.zeros(1, 2, 2), torch.zeros(1, 4, 3))
+    with pytest.raises(ValueError, match=r"uvw: expected last dimension 3"):
+        sample3d(vol, torch.zeros(1, 4, 2))
+    with pytest.raises(TypeError, match=r"uvw: expected dtype torch.float32 like volume"):
+        sample3d(vol, torch.zeros(1, 4, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"batch sizes do not match \(volume 2, uvw 3\)"):
+        sample3d(torch.zeros(2, 1, 2, 2, 2), torch.zeros(3, 4, 3))
+    with pytest.raises(ValueError, match=r"filter: expected one of \('nearest', 'linear'\) for sample3d"):
+        sample3d(vol, torch.zeros(1, 4, 3), filter="bicubic")
+    with pytest.raises(ValueError, match=r"wrap: unknown mode 'wrap'"):
+        sample3d(vol, torch.zeros(1, 4, 3), wrap=("repeat", "wrap", "clamp"))
+    with pytest.raises(ValueError, match=r"wrap: expected one mode or a triple"):
+        sample3d(vol, torch.zeros(1, 4, 3), wrap=("repeat", "clamp"))
+    with pytest.raises(TypeError, match=r"border_value: expected a number"):
+        sample3d(vol, torch.zeros(1, 4, 3), border_value="0")
