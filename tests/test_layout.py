@@ -125,6 +125,8 @@ PUBLIC = {
     "TexturedMesh", "levels_needed",
     # added with the subpackages
     "backend", "envmap", "metrics", "equirect_uv_to_direction", "cube_to_direction",
+    # textures in shading: baking, solid and 3D textures
+    "ambient_occlusion", "bake", "noise", "sample3d",
 }
 
 

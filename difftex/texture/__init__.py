@@ -5,12 +5,18 @@ Inside: ``sample`` (checks and dispatch), ``options`` (filter names, caps),
 (the mip filters' front end), ``pyramid/`` (mipmaps), ``filters/`` (the
 gather reference, the grid_sample path and the filters built on them) and
 ``native/`` (the C++ CPU kernel); ``difftex.backend`` picks among them.
+Also: ``volume`` (``sample3d``, 3D textures), ``noise`` (Perlin noise, fBm,
+wood / marble solid textures) and ``baking`` (``bake``, ambient occlusion).
 """
+from . import noise
+from .baking import ambient_occlusion, bake
 from .lod import lod
 from .options import FILTERS, MIP_FILTERS
 from .pyramid import Mipmap, mipmap
 from .sample import sample
 from .taps import levels_needed
+from .volume import sample3d
 from .wrap import WRAP_MODES
 
-__all__ = ["sample", "lod", "levels_needed", "Mipmap", "mipmap", "FILTERS", "MIP_FILTERS", "WRAP_MODES"]
+__all__ = ["sample", "lod", "levels_needed", "Mipmap", "mipmap", "FILTERS", "MIP_FILTERS", "WRAP_MODES",
+           "sample3d", "noise", "bake", "ambient_occlusion"]

@@ -15,7 +15,7 @@ The lattice hash is a permutation table, and the gradients are a table of
 
 The solid textures :func:`wood` and :func:`marble` map object-space points
 to RGB; evaluate them per pixel (a solid texture) or bake them into an
-ordinary 2D texture with :func:`difftex.texture.bake.bake`.
+ordinary 2D texture with :func:`difftex.bake`.
 """
 from __future__ import annotations
 
