@@ -217,7 +217,7 @@ def wood(points: Tensor, *, frequency: float = 6.0, grain: float = 0.15, noise_s
     return _mix(lo, hi, s)
 
 
-def marble(points: Tensor, *, frequency: float = 2.0, turbulence_amount: float = 4.0, noise_scale: float = 2.0,
+def marble(points: Tensor, *, frequency: float = 1.5, turbulence_amount: float = 1.2, noise_scale: float = 1.5,
            seed: int = 0, light: Sequence[float] = (0.93, 0.92, 0.88),
            dark: Sequence[float] = (0.25, 0.27, 0.33)) -> Tensor:
     """Perlin's marble: veins ``sin(2 pi (frequency * x + turbulence_amount * turbulence(noise_scale * p)))``.
@@ -238,6 +238,6 @@ def marble(points: Tensor, *, frequency: float = 2.0, turbulence_amount: float =
     lo, hi = _colour("light", light, points), _colour("dark", dark, points)
     t = turbulence(points * noise_scale, octaves=4, seed=seed)
     v = torch.sin(2 * math.pi * (frequency * points[..., 0] + turbulence_amount * t))
-    # The fourth power narrows the dark veins to where v nears -1.
-    s = ((1 - v) * 0.5) ** 4
+    # The sixth power narrows the dark veins to where v nears -1.
+    s = ((1 - v) * 0.5) ** 6
     return _mix(lo, hi, s)

@@ -186,7 +186,7 @@ def test_baked_marble_matches_the_solid_texture_on_spot():
     assert tex[128].shape == (3, 128, 128)
     assert torch.allclose(tex[128].permute(1, 2, 0)[mask], marble(pos_tex.permute(1, 2, 0)[mask]), atol=1e-6)
     # Rendered: the solid texture per pixel vs the baked texture read bilinearly at the pixel's uv; the baked
-    # one converges to the solid one as the texture grows (17.9 and 22.9 dB measured at 128 and 256).
+    # one converges to the solid one as the texture grows (28.4 and 36.6 dB measured at 128 and 256).
     clip = difftex.camera.transform(mesh.positions, spot_mvp(2.5, (1.0, 0.3, 1.0)).unsqueeze(0))
     frags = difftex.rasterize(clip, mesh.faces, (96, 96))
     p = difftex.interpolate(mesh.positions, mesh.faces, frags)
@@ -195,7 +195,7 @@ def test_baked_marble_matches_the_solid_texture_on_spot():
     m = frags.mask.unsqueeze(1).expand_as(solid)
     score = {S: psnr(difftex.sample(t.unsqueeze(0), uv, filter="bilinear", wrap="clamp"), solid, mask=m)
              for S, t in tex.items()}
-    assert score[256] > 21.0 and score[256] > score[128] + 3.0, score
+    assert score[256] > 34.0 and score[256] > score[128] + 6.0, score
 
 
 def test_bad_input():
