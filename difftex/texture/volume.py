@@ -70,7 +70,8 @@ def sample3d(volume: Tensor, uvw: Tensor, *, filter: str = "linear", wrap: Wrap3
         [B, C, ...] with uvw's point dimensions.
 
     Gradients flow to ``volume`` and (for "linear") to ``uvw``; both to any
-    order. NaN / inf coordinates give NaN in their own outputs only. Raises
+    order. NaN / inf coordinates give NaN in their own outputs only, and no
+    gradient to the volume or to themselves. Raises
     TypeError on non-float tensors or mismatched dtypes, ValueError naming
     the argument on bad shapes, devices, batch sizes, filters or wraps.
     """
@@ -96,6 +97,13 @@ def sample3d(volume: Tensor, uvw: Tensor, *, filter: str = "linear", wrap: Wrap3
     elif Bu == 1 and Bv > 1:
         pts = pts.expand(Bv, -1, -1)
     flat = volume.reshape(Bv, C, D * H * W)
+    # A NaN / inf point reads from zero coordinates and shows NaN afterwards, so that it spreads no NaN
+    # into the volume's gradient through the texel it would index.
+    bad = ~torch.isfinite(pts.detach()).all(-1)  # [Bv or 1, M]
+    if bool(bad.any()):
+        pts = torch.where(bad.unsqueeze(-1), torch.zeros_like(pts), pts)
+    else:
+        bad = None
     sizes = (W, H, D)
     taps = []  # per axis: list of (index, valid, weight)
     for axis in range(3):
@@ -131,6 +139,8 @@ def sample3d(volume: Tensor, uvw: Tensor, *, filter: str = "linear", wrap: Wrap3
                     vals = torch.where(ok.unsqueeze(1), vals, vals.new_tensor(border_value))
                 term = vals * (wz * wy * wx).unsqueeze(1)
                 out = term if out is None else out + term
+    if bad is not None:
+        out = torch.where(bad.unsqueeze(1), out.new_tensor(float("nan")), out)
     if out.shape[0] != B:  # the long row of a shared volume back into uvw's batch
         out = out.view(C, B, -1).transpose(0, 1)
     return out.reshape(B, C, *points)

@@ -88,6 +88,13 @@ def test_border_value_and_non_finite():
     uvw = torch.tensor([[[5.0, 0.5, 0.5], [0.5, 0.5, 0.5], [float("nan"), 0.5, 0.5]]])
     out = sample3d(vol, uvw, wrap="border", border_value=0.25)
     assert out[0, 0, 0] == 0.25 and out[0, 0, 1] == 1 and torch.isnan(out[0, 0, 2])
+    v = torch.rand(1, 1, 2, 2, 2, dtype=torch.float64, requires_grad=True)
+    u = torch.tensor([[[0.3, 0.4, 0.5], [float("inf"), 0.5, 0.5]]], dtype=torch.float64, requires_grad=True)
+    out = sample3d(v, u)
+    assert torch.isfinite(out[0, 0, 0]) and torch.isnan(out[0, 0, 1])
+    gv, gu = torch.autograd.grad(out, (v, u), torch.ones_like(out))  # the NaN output's gradient is 1 too
+    assert torch.isfinite(gv).all() and torch.isfinite(gu).all() and torch.all(gu[0, 1] == 0)
+    assert torch.allclose(gv.sum(), torch.tensor(1.0, dtype=torch.float64))  # the finite point's weights
     huge = torch.tensor([[[1e30, -1e30, 3e38]]])
     assert torch.isfinite(sample3d(vol, huge, wrap="repeat")).all()
 
