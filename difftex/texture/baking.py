@@ -148,6 +148,8 @@ def bake(mesh: Mesh, fn: Callable[[Tensor, Tensor], Tensor], size: int | Sequenc
     mesh = _check_mesh(mesh)
     H, W = _check_size(size)
     dilate = _check_count("dilate", dilate, 0)
+    if isinstance(fill, bool) or not isinstance(fill, (int, float)):
+        raise TypeError(f"fill: expected a number, got {type(fill).__name__}")
     if not callable(fn):
         raise TypeError(f"fn: expected a callable fn(points, normals), got {type(fn).__name__}")
     pos = mesh.positions

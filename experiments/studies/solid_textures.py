@@ -45,11 +45,12 @@ def _image(colour, shade, mask, background=1.0):
     return img[0].permute(1, 2, 0).clamp(0, 1).numpy()
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> float:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", type=int, default=256, help="baked texture size")
     ap.add_argument("--res", type=int, default=256, help="rendered image size")
     ap.add_argument("--ao-directions", type=int, default=64)
+    ap.add_argument("--ao-resolution", type=int, default=256, help="shadow-map size")
     ap.add_argument("--out", type=Path, default=Path("docs/images/solid_textures.png"))
     args = ap.parse_args(argv)
     import matplotlib
@@ -84,7 +85,8 @@ def main(argv=None) -> None:
     panels.append((f"marble baked to {args.size}$^2$, bilinear\nPSNR {score:.1f} dB vs solid", _image(baked, shade, mask)))
     panels.append((f"the baked 2D texture ({args.size}$^2$)", tex.permute(1, 2, 0).clamp(0, 1).numpy()))
     t1 = time.perf_counter()
-    ao = difftex.ambient_occlusion(mesh, args.size // 2, directions=args.ao_directions, resolution=256)
+    ao = difftex.ambient_occlusion(mesh, args.size // 2, directions=args.ao_directions,
+                                 resolution=args.ao_resolution)
     t_ao = time.perf_counter() - t1
     # Seen from below, where the legs and the belly occlude each other (spot is mostly convex elsewhere).
     frags, _, shade = _view(mesh.positions, mesh.faces, spot_mvp(3.0, (1.0, -0.5, 0.6)), res)
@@ -104,6 +106,7 @@ def main(argv=None) -> None:
     fig.savefig(args.out, dpi=80)
     print(f"marble baked at {args.size}^2 vs solid: PSNR {score:.2f} dB; ambient occlusion bake {t_ao:.1f} s; "
           f"total {time.perf_counter() - t0:.1f} s; wrote {args.out}")
+    return score
 
 
 if __name__ == "__main__":

@@ -208,6 +208,8 @@ def test_bad_input():
         bake(m, _identity, 0)
     with pytest.raises(ValueError, match=r"dilate: expected an int >= 0, got -1"):
         bake(m, _identity, 8, dilate=-1)
+    with pytest.raises(TypeError, match=r"fill: expected a number, got str"):
+        bake(m, _identity, 8, fill="0")
     with pytest.raises(TypeError, match=r"fn: expected a callable"):
         bake(m, None, 8)
     with pytest.raises(ValueError, match=r"fn: expected it to return \[N, C\] or \[N\] values for N = 16 points"):
