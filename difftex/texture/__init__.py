@@ -15,8 +15,8 @@ from .options import FILTERS, MIP_FILTERS
 from .pyramid import Mipmap, mipmap
 from .sample import sample
 from .taps import levels_needed
-from .volume import sample3d
+from .volume import sample3d, volume_mipmap
 from .wrap import WRAP_MODES
 
 __all__ = ["sample", "lod", "levels_needed", "Mipmap", "mipmap", "FILTERS", "MIP_FILTERS", "WRAP_MODES",
-           "sample3d", "noise", "bake", "ambient_occlusion"]
+           "sample3d", "volume_mipmap", "noise", "bake", "ambient_occlusion"]

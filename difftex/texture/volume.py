@@ -21,13 +21,46 @@ from torch import Tensor
 
 from .._checks import broadcast_batch, check_float, check_same, describe
 from .filters.gather import reduce_coordinate
-from .wrap import WRAP_MODES, floor_index, parse_wrap, wrap_index
+from .lod import level
+from .pyramid.mipmap import _down_axis
+from .wrap import floor_index, parse_wrap, wrap_index
 
-__all__ = ["sample3d", "VOLUME_FILTERS"]
+__all__ = ["sample3d", "volume_mipmap", "VOLUME_FILTERS"]
 
 VOLUME_FILTERS = ("nearest", "linear")
 
 Wrap3 = Union[str, Sequence[str]]
+
+
+def volume_mipmap(volume: Tensor, *, max_levels: int | None = None) -> list[Tensor]:
+    """The mip pyramid of a volume: level ``k`` is ``ceil(D / 2^k) x ceil(H / 2^k) x ceil(W / 2^k)``.
+
+    Each axis halves with the 2D pyramid's filters (``texture.pyramid``: the
+    2-texel box on an even axis, the area-weighted box on an odd one, which
+    keeps the mean exactly), down to 1 x 1 x 1.
+
+    Args:
+        volume: [B, C, D, H, W] float.
+        max_levels: keep at most this many levels (>= 1); default all.
+
+    Returns:
+        list of [B, C, D_k, H_k, W_k] tensors, level 0 first (``volume``
+        itself). Differentiable: gradients reach ``volume`` from every level.
+        Raises TypeError / ValueError naming the argument on bad input.
+    """
+    volume = check_float("volume", volume, ndim=5, shape_doc="[B, C, D, H, W]")
+    if min(volume.shape[2:]) == 0:
+        raise ValueError(f"volume: expected a non-empty volume [B, C, D, H, W], got {describe(volume)}")
+    if max_levels is not None and (isinstance(max_levels, bool) or not isinstance(max_levels, int)
+                                   or max_levels < 1):
+        raise ValueError(f"max_levels: expected None or an int >= 1, got {max_levels!r}")
+    n = 1 + max(int(s - 1).bit_length() for s in volume.shape[2:])  # ceil(log2 of the largest side) + 1
+    n = n if max_levels is None else min(n, max_levels)
+    levels = [volume]
+    while len(levels) < n:
+        x = _down_axis(_down_axis(levels[-1], -1), -2)
+        levels.append(_down_axis(x.transpose(-3, -2), -2).transpose(-3, -2))
+    return levels
 
 
 def parse_wrap3(wrap: Wrap3) -> tuple[str, str, str]:
@@ -45,13 +78,14 @@ def parse_wrap3(wrap: Wrap3) -> tuple[str, str, str]:
     return tuple(wrap)  # type: ignore[return-value]
 
 
-def sample3d(volume: Tensor, uvw: Tensor, *, filter: str = "linear", wrap: Wrap3 = "repeat",
-             border_value: float = 0.0) -> Tensor:
+def sample3d(volume: Tensor | Sequence[Tensor], uvw: Tensor, *, filter: str = "linear", wrap: Wrap3 = "repeat",
+             border_value: float = 0.0, lod: Tensor | float | None = None) -> Tensor:
     """Sample a 3D texture (volume) at uvw coordinates.
 
     Args:
         volume: [B, C, D, H, W] float32 / float64; B = 1 broadcasts over
-            uvw's batch.
+            uvw's batch. With ``lod``, also a list of levels from
+            :func:`volume_mipmap` (else the pyramid is built on the fly).
         uvw: [B, ..., 3] coordinates (any number of point dimensions), same
             dtype and device as ``volume``; ``u`` along W, ``v`` along H, ``w``
             along D, ``(0, 0, 0)`` the outer corner of texel (0, 0, 0) and
@@ -65,16 +99,30 @@ def sample3d(volume: Tensor, uvw: Tensor, *, filter: str = "linear", wrap: Wrap3
             padding "border", mirror its "reflection", border its "zeros"
             (with ``border_value``).
         border_value: the constant that "border" reads outside the volume.
+        lod: optional level of detail ``D`` (a number or a [B, ...] tensor
+            with uvw's point shape): blends ``filter`` reads of levels
+            ``floor(D)`` and ``floor(D) + 1`` of the volume's pyramid by the
+            fraction of ``D``, after ``D = clamp(D, 0, top level)`` (the 2D
+            level formula and its gradient convention
+            of DESIGN.md, ``texture.lod.level``; the caller computes D,
+            e.g. ``log2`` of the footprint in level-0 texels). None reads
+            level 0 only.
 
     Returns:
         [B, C, ...] with uvw's point dimensions.
 
-    Gradients flow to ``volume`` and (for "linear") to ``uvw``; both to any
-    order. NaN / inf coordinates give NaN in their own outputs only, and no
+    Gradients flow to ``volume`` (through every level) and (for "linear")
+    to ``uvw`` and ``lod``; to any order. NaN / inf coordinates give NaN in their own outputs only, and no
     gradient to the volume or to themselves. Raises
     TypeError on non-float tensors or mismatched dtypes, ValueError naming
     the argument on bad shapes, devices, batch sizes, filters or wraps.
     """
+    levels = None
+    if isinstance(volume, (list, tuple)):
+        if lod is None or len(volume) == 0:
+            raise TypeError("volume: a list of levels needs lod (and at least one level); pass a tensor otherwise")
+        levels = [check_float(f"volume[{k}]", v, ndim=5, shape_doc="[B, C, D, H, W]") for k, v in enumerate(volume)]
+        volume = levels[0]
     volume = check_float("volume", volume, ndim=5, shape_doc="[B, C, D, H, W]")
     uvw = check_float("uvw", uvw, last=3, shape_doc="[B, ..., 3]")
     if uvw.dim() < 2:
@@ -87,9 +135,49 @@ def sample3d(volume: Tensor, uvw: Tensor, *, filter: str = "linear", wrap: Wrap3
         raise TypeError(f"border_value: expected a number, got {type(border_value).__name__}")
     if min(volume.shape[2:]) == 0:
         raise ValueError(f"volume: expected a non-empty volume [B, C, D, H, W], got {describe(volume)}")
+    B = broadcast_batch(("volume", "uvw"), (volume.shape[0], uvw.shape[0]))
+    if lod is None:
+        return _read(volume, uvw, filter, modes, float(border_value))
+    if levels is None:
+        levels = volume_mipmap(volume)
+    for k, v in enumerate(levels[1:], 1):
+        check_same(f"volume[{k}]", v, "volume[0]", volume)
+        if v.shape[:2] != volume.shape[:2]:
+            raise ValueError(f"volume[{k}]: expected batch and channels {tuple(volume.shape[:2])} like volume[0], "
+                             f"got {describe(v)}")
+    if isinstance(lod, Tensor):
+        check_float("lod", lod)
+        check_same("lod", lod, "uvw", uvw)
+        if lod.dim() > 0 and (lod.shape[1:] != uvw.shape[1:-1] or lod.shape[0] not in (1, B)):
+            raise ValueError(f"lod: expected a number or [B, ...] = {(B, *uvw.shape[1:-1])} like uvw's points, "
+                             f"got {describe(lod)}")
+    elif isinstance(lod, bool) or not isinstance(lod, (int, float)):
+        raise TypeError(f"lod: expected None, a number or a tensor, got {type(lod).__name__}")
+    else:
+        lod = uvw.new_tensor(float(lod))
+    if lod.dim() == 0:
+        lod = lod.expand(1, *uvw.shape[1:-1])
+    d = level(lod, 0.0, len(levels))
+    # Blend levels lo and lo + 1 with lo = ceil(D) - 1: at an integer D = k > 0 that is levels k - 1 and k with
+    # weight 1 on k, so the gradient in D is the derivative from below, v_k - v_(k-1), as DESIGN.md states.
+    lo = (torch.ceil(d.detach()) - 1).clamp(min=0)
+    frac = d - lo
+    out = None
+    for k in range(len(levels)):
+        near = (lo == k) | (lo == k - 1)
+        if not bool(near.any()):
+            continue
+        w = torch.where(lo == k, 1 - frac, torch.where(lo == k - 1, frac, torch.zeros_like(frac)))
+        term = _read(levels[k], uvw, filter, modes, float(border_value)) * w.unsqueeze(1)
+        out = term if out is None else out + term
+    return out
+
+
+def _read(volume: Tensor, uvw: Tensor, filter: str, modes: tuple[str, str, str], border_value: float) -> Tensor:
+    """One level, checked inputs: [B, C, ...]."""
     Bv, C, D, H, W = volume.shape
     Bu = uvw.shape[0]
-    B = broadcast_batch(("volume", "uvw"), (Bv, Bu))
+    B = max(Bv, Bu)
     points = uvw.shape[1:-1]
     pts = uvw.reshape(Bu, -1, 3)
     if Bv == 1 and Bu > 1:  # one volume for every row of points: gather from it as one long row
