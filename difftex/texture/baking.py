@@ -137,7 +137,8 @@ def bake(mesh: Mesh, fn: Callable[[Tensor, Tensor], Tensor], size: int | Sequenc
         [C, H, W] texture (``[1, H, W]`` for a [N] result): texel ``(i, j)``
         holds ``fn`` at the surface point of uv
         ``((j + 0.5) / W, (i + 0.5) / H)``, the point ``difftex.sample``
-        reads there. Where uv charts overlap the lowest face index wins.
+        reads there. Where uv charts overlap the lowest face index wins;
+        uv outside [0, 1] is not wrapped (those parts are not baked).
 
     Gradients flow from the texture to whatever ``fn`` depends on (its
     parameters, and through ``points`` / ``normals`` to ``mesh.positions`` /
@@ -153,7 +154,8 @@ def bake(mesh: Mesh, fn: Callable[[Tensor, Tensor], Tensor], size: int | Sequenc
     if not callable(fn):
         raise TypeError(f"fn: expected a callable fn(points, normals), got {type(fn).__name__}")
     pos = mesh.positions
-    clip = uv_clip_positions(mesh.uv.detach().to(device=pos.device))
+    # In the positions' dtype: float64 positions get float64 barycentrics.
+    clip = uv_clip_positions(mesh.uv.detach().to(device=pos.device, dtype=pos.dtype))
     frags = rasterize(clip, mesh.uv_faces, (H, W))
     mask = frags.tri_id[0] >= 0
     points = interpolate(pos, mesh.uv_faces, frags, attr_faces=mesh.faces)[0][mask]
