@@ -43,7 +43,7 @@ def _check_seed(seed: object) -> int:
 
 @lru_cache(maxsize=32)
 def _tables_cpu(seed: int) -> tuple[Tensor, Tensor, Tensor]:
-    """Permutation [512] int64 (doubled, so hashes need no modulo), gradients [256, 3] float64, octave shifts [64, 3]."""
+    """Permutation [512] int64 (doubled: hashes need no modulo), gradients [256, 3] float64, octave shifts [64, 3]."""
     gen = torch.Generator().manual_seed(seed)
     perm = torch.randperm(_PERIOD, generator=gen)
     grads = torch.randn(_PERIOD, 3, generator=gen, dtype=torch.float64)

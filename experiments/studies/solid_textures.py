@@ -82,7 +82,8 @@ def main(argv=None) -> float:
     baked = difftex.sample(tex.unsqueeze(0), uv, filter="bilinear", wrap="clamp")
     score = psnr(baked, solid, mask=mask.expand_as(solid))
     panels.append(("marble on spot, solid (per pixel)", _image(solid, shade, mask)))
-    panels.append((f"marble baked to {args.size}$^2$, bilinear\nPSNR {score:.1f} dB vs solid", _image(baked, shade, mask)))
+    panels.append((f"marble baked to {args.size}$^2$, bilinear\nPSNR {score:.1f} dB vs solid",
+                   _image(baked, shade, mask)))
     panels.append((f"the baked 2D texture ({args.size}$^2$)", tex.permute(1, 2, 0).clamp(0, 1).numpy()))
     t1 = time.perf_counter()
     ao = difftex.ambient_occlusion(mesh, args.size // 2, directions=args.ao_directions,
