@@ -176,3 +176,19 @@ def test_lod_gradcheck_and_bad_input():
         sample3d(vol, uvw, lod="1")
     with pytest.raises(TypeError, match=r"volume: a list of levels needs lod"):
         sample3d([vol], uvw)
+
+
+@pytest.mark.parametrize("wrap", ["repeat", "clamp", "mirror", "border"])
+def test_a_volume_of_equal_slices_reads_like_the_2d_sampler(wrap):
+    """Every slice the same texture: sample3d at (u, v, any w) is difftex.sample at (u, v), same wrap rules."""
+    import difftex
+
+    g = torch.Generator().manual_seed(7)
+    tex = torch.rand(2, 3, 5, 6, generator=g, dtype=torch.float64)
+    vol = tex.unsqueeze(2).expand(-1, -1, 4, -1, -1)
+    uv = torch.rand(2, 4, 5, 2, generator=g, dtype=torch.float64) * 3 - 1
+    w = torch.rand(2, 4, 5, 1, generator=g, dtype=torch.float64) * 0.75 + 0.125  # inside: border reads no zeros
+    for filt, filt2d in (("linear", "bilinear"), ("nearest", "nearest")):
+        got = sample3d(vol, torch.cat((uv, w), -1), filter=filt, wrap=(wrap, wrap, "clamp"), border_value=0.5)
+        want = difftex.sample(tex, uv, filter=filt2d, wrap=wrap, border_value=0.5)
+        assert torch.allclose(got, want, atol=1e-12), filt
