@@ -98,6 +98,17 @@ def test_spot_identity_against_ray_casting_in_uv():
     half_texel = 0.5 / S * np.linalg.norm(jac, ord=2, axis=(1, 2))
     assert np.all(err < half_texel)
     assert err.max() < 1e-9  # in fact the same point to rounding
+    # Dilation on spot's real seams: covered texels unchanged, every texel of the 2-texel ring copies a covered
+    # texel at most 2 texels away (Chebyshev), and nothing beyond the ring is written.
+    dil, have = bake(mesh, _identity, S, dilate=2, return_mask=True)
+    assert torch.equal(dil[:, mask], tex[:, mask])
+    near = torch.nn.functional.max_pool2d(mask[None, None].double(), 5, stride=1, padding=2)[0, 0] > 0
+    assert torch.equal(have, near)
+    windows = torch.nn.functional.unfold(tex[None], 5, padding=2).view(3, 25, S, S)  # covered values nearby
+    covered = torch.nn.functional.unfold(mask[None, None].double(), 5, padding=2).view(25, S, S) > 0
+    match = ((windows - dil[:, None]).abs().amax(0) == 0) & covered
+    ring = have & ~mask
+    assert int(ring.sum()) > 100 and match.any(0)[ring].all()
 
 
 def test_normals_and_vertex_normals():
