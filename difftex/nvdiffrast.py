@@ -313,14 +313,12 @@ class DepthPeeler:
 # interpolate
 
 
-def _corner_values(attr: Tensor, corners: Tensor, B: int) -> Tensor:
-    """Attributes at each pixel's triangle corners: [B, H, W, 3, A] from attr [V, A] or [B | 1, V, A]."""
-    if attr.dim() == 2 or attr.shape[0] == 1:
-        table = attr.reshape(-1, attr.shape[-1])
-        return table[corners]
-    V = attr.shape[1]
-    rows = corners + (torch.arange(B, device=corners.device) * V).view(B, 1, 1, 1)
-    return attr.reshape(-1, attr.shape[-1])[rows]
+def _corner_values(attr: Tensor, corners: Tensor, batch: Tensor) -> Tensor:
+    """Attributes at covered pixels' triangle corners [N, 3, A], from attr [V, A] or [B | 1, V, A]."""
+    A = attr.shape[-1]
+    if attr.dim() == 3 and attr.shape[0] > 1:
+        corners = corners + (batch * attr.shape[1])[:, None]
+    return attr.reshape(-1, A).index_select(0, corners.reshape(-1)).view(-1, 3, A)
 
 
 def interpolate(attr: Tensor, rast: Tensor, tri: Tensor, rast_db: Optional[Tensor] = None,
@@ -354,17 +352,23 @@ def interpolate(attr: Tensor, rast: Tensor, tri: Tensor, rast_db: Optional[Tenso
     if attr.dim() == 3 and attr.shape[0] not in (1, B):
         raise ValueError(f"attr: expected minibatch size 1 or {B} like rast, got {describe(attr)}")
     faces = _check_tri(tri, attr.shape[-2], attr.device)
-    ids = rast[..., 3].detach().round().long() - 1
-    found = ids >= 0
-    if found.any() and int(ids.max()) >= faces.shape[0]:
+    # Covered pixels only, scattered into zeros: background pixels get exact
+    # zeros and no gradient, and the cost follows the coverage.
+    flat_ids = rast[..., 3].detach().reshape(-1)
+    idx = torch.nonzero(flat_ids > 0).squeeze(1)
+    ids = flat_ids.index_select(0, idx).round().long() - 1
+    if ids.numel() and int(ids.max()) >= faces.shape[0]:
         raise ValueError(f"rast: triangle id {int(ids.max()) + 1} exceeds tri's {faces.shape[0]} triangles; "
                          "pass the tri given to rasterize")
-    corners = faces[ids.clamp(min=0)]  # [B, H, W, 3]
-    a0, a1, a2 = _corner_values(attr, corners, B).unbind(-2)
+    a0, a1, a2 = _corner_values(attr, faces.index_select(0, ids), torch.div(idx, H * W, rounding_mode="floor")
+                                ).unbind(1)
     d0, d1 = a0 - a2, a1 - a2
-    u, v = rast[..., 0:1], rast[..., 1:2]
-    keep = found[..., None]
-    out = torch.where(keep, a2 + u * d0 + v * d1, 0)
+    uvc = rast.reshape(-1, 4).index_select(0, idx)
+
+    def dense(vals: Tensor) -> Tensor:
+        return vals.new_zeros((B * H * W, vals.shape[1])).index_copy(0, idx, vals).view(B, H, W, -1)
+
+    out = dense(a2 + uvc[:, 0:1] * d0 + uvc[:, 1:2] * d1)
     if rast_db is None or diff_attrs is None:
         return out, out.new_zeros((B, H, W, 0))
     rast_db = check_float("rast_db", rast_db, 4, last=4, shape_doc="[minibatch_size, height, width, 4]")
@@ -380,11 +384,11 @@ def interpolate(attr: Tensor, rast: Tensor, tri: Tensor, rast_db: Optional[Tenso
         sel = [int(i) for i in diff_attrs]
         if any(i < 0 or i >= A for i in sel):
             raise ValueError(f"diff_attrs: indices must lie in [0, {A - 1}], got {list(diff_attrs)}")
-    d0, d1 = d0[..., sel], d1[..., sel]
-    dX = rast_db[..., 0:1] * d0 + rast_db[..., 2:3] * d1
-    dY = rast_db[..., 1:2] * d0 + rast_db[..., 3:4] * d1
-    da = torch.where(keep[..., None], torch.stack([dX, dY], -1), 0).reshape(B, H, W, 2 * len(sel))
-    return out, da
+    d0, d1 = d0[:, sel], d1[:, sel]
+    db = rast_db.reshape(-1, 4).index_select(0, idx)
+    dX = db[:, 0:1] * d0 + db[:, 2:3] * d1
+    dY = db[:, 1:2] * d0 + db[:, 3:4] * d1
+    return out, dense(torch.stack([dX, dY], -1).reshape(-1, 2 * len(sel)))
 
 
 # --------------------------------------------------------------------------
