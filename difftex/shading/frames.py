@@ -4,8 +4,9 @@ Tangent space is (T, B, N): T points along increasing u, B along
 increasing v (DESIGN.md: v runs down the texture rows), N is the surface
 normal. A tangent-space vector (x, y, z) is ``x T + y B + z N`` in world
 space. Per vertex only T and a handedness ``w = +-1`` are stored (the glTF /
-MikkTSpace layout): ``B = w * cross(N, T)``; ``w = -1`` where the uv are
-mirrored.
+MikkTSpace layout): ``B = w * cross(N, T)``. With DESIGN.md's v-down uv an
+ordinary (unmirrored, counter-clockwise) chart has ``w = -1`` and a
+mirrored one ``w = +1``; the bump and normal-map formulas hold for both.
 """
 from __future__ import annotations
 
