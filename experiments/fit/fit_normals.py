@@ -16,7 +16,7 @@ metrics.json, images.png (targets under two lights | fit | albedo truth /
 fit | normals truth / fit as colours) and curves.png (loss, normal error,
 albedo PSNR).
 
-    python -m experiments.fit.fit_normals [--iters 400] [--res 128] [--tex 64] [--lights 4]
+    python -m experiments.fit.fit_normals [--iters 300] [--res 96] [--tex 48] [--lights 4]
 """
 from __future__ import annotations
 
@@ -88,7 +88,7 @@ def angular_error_deg(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> f
     return float(torch.rad2deg(torch.acos(cos))[mask].mean())
 
 
-def run(iters: int = 400, res: int = 128, tex: int = 64, n_lights: int = 4, lr: float = 0.02,
+def run(iters: int = 300, res: int = 96, tex: int = 48, n_lights: int = 4, lr: float = 0.02,
         out: Path | None = None, progress: bool = True, log_every: int = 10) -> dict:
     """Fit; returns the metrics (and writes the figures when ``out`` is given)."""
     t0 = time.time()
@@ -178,9 +178,9 @@ def _figures(out, target, img, albedo_true, albedo, n_true, n_fit, curves) -> No
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--iters", type=int, default=400)
-    p.add_argument("--res", type=int, default=128)
-    p.add_argument("--tex", type=int, default=64)
+    p.add_argument("--iters", type=int, default=300)
+    p.add_argument("--res", type=int, default=96)
+    p.add_argument("--tex", type=int, default=48)
     p.add_argument("--lights", type=int, default=4)
     p.add_argument("--lr", type=float, default=0.02)
     p.add_argument("--out", type=Path, default=Path("results/fit_normals"))
