@@ -1,7 +1,7 @@
 """Displacement mapping (vertices actually move along their normals) and the midpoint subdivision that carries it."""
 from __future__ import annotations
 
-from typing import Optional, Union
+from typing import Union
 
 import numpy as np
 import torch
