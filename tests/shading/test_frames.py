@@ -112,3 +112,24 @@ def test_bad_input():
         tangent_frames(pos, faces, uv, torch.zeros(9, 2, dtype=torch.float64))
     with pytest.raises(ValueError, match=r"tangents \(2, 4\) and normals \(3, 3\) do not broadcast"):
         surface_frames(torch.zeros(2, 4), torch.zeros(3, 3))
+
+
+def test_spot_frames_split_at_the_obj_seams_and_follow_each_face():
+    from difftex.testing import spot_mesh
+
+    m = spot_mesh().to(dtype=torch.float64)
+    fr = tangent_frames(m.positions, m.faces, m.uv, m.normals, m.uv_faces, normal_faces=m.normal_faces)
+    # The file has no normals: one frame per (position, uv) pair, Mesh.unified()'s 3225 (trimesh's count).
+    assert m.normals is None and fr.tangents.shape == (3225, 4)
+    _check_orthonormal(fr)
+    p, uv = m.positions[m.faces], m.uv[m.uv_faces]
+    e1, e2, d1, d2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    det = (d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1])[:, None]
+    face_t = (e1 * d2[:, 1:] - e2 * d1[:, 1:]) / det
+    face_b = (e2 * d1[:, :1] - e1 * d2[:, :1]) / det
+    corner_t = fr.tangents[fr.faces]
+    cos = (corner_t[..., :3] * (face_t / face_t.norm(dim=-1, keepdim=True))[:, None]).sum(-1)
+    # Measured: median 0.996, 97% of corners above 0.9 (the rest sit where the chart bends sharply).
+    assert cos.median() > 0.99 and (cos > 0.9).double().mean() > 0.95
+    b = corner_t[..., 3:] * torch.cross(fr.normals[fr.faces], corner_t[..., :3], dim=-1)
+    assert ((b * face_b[:, None]).sum(-1) > 0).double().mean() > 0.99  # handedness: B on dP/dv's side
