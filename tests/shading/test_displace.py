@@ -35,12 +35,13 @@ def test_subdivided_plane_moves_each_vertex_by_the_sampled_height():
     assert float(out[0, corner, 2]) == pytest.approx(0.3 * float(height[0, 0, 0, 0]), abs=1e-12)
 
 
-def test_displacement_along_tilted_normals_and_batches():
-    pos = torch.rand(5, 3, dtype=torch.float64)
-    n = torch.randn(2, 5, 3, dtype=torch.float64)
-    uv = torch.rand(5, 2, dtype=torch.float64)
-    h = torch.rand(2, 1, 4, 4, dtype=torch.float64)
-    scale = torch.tensor([[0.5], [2.0]], dtype=torch.float64)
+def test_displacement_along_tilted_normals_and_batches(device):
+    f = dict(dtype=torch.float64, device=device)
+    pos = torch.rand(5, 3, **f)
+    n = torch.randn(2, 5, 3, **f)
+    uv = torch.rand(5, 2, **f)
+    h = torch.rand(2, 1, 4, 4, **f)
+    scale = torch.tensor([[0.5], [2.0]], **f)
     out = displace(pos, n, h, uv, scale)
     for b in range(2):
         hv = F.grid_sample(h[b:b + 1], (2 * uv - 1)[None, None], align_corners=False)  # zeros never reached: wrap

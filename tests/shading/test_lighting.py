@@ -38,15 +38,14 @@ KD = [[0.8, 0.5, 0.2], [0.1, 0.9, 0.4], [0.3, 0.3, 0.3]]
 KS = [0.4, 0.25, 0.1]
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_blinn_phong_matches_the_hand_computation_with_three_lights(dtype):
-    t = lambda x: torch.tensor(x, dtype=dtype)
+def test_blinn_phong_matches_the_hand_computation_with_three_lights(dtype, device):
+    t = lambda x: torch.tensor(x, dtype=dtype, device=device)
     out = blinn_phong(t(NORMALS), t(VIEWS), t(LIGHTS), t(KD), t(KS)[:, None], 7.5,
                       ambient=t([0.1, 0.2, 0.05]), light_colors=t(COLORS))
     assert out.shape == (3, 3) and out.dtype == dtype
     want = [_hand(NORMALS[i], VIEWS[i], LIGHTS, COLORS, KD[i], [KS[i]] * 3, 7.5, [0.1, 0.2, 0.05]) for i in range(3)]
     tol = 1e-6 if dtype == torch.float32 else 1e-12
-    torch.testing.assert_close(out, torch.tensor(want, dtype=dtype), atol=tol, rtol=tol)
+    torch.testing.assert_close(out, t(want), atol=tol, rtol=tol)
     # The first point under the light along n = v alone: exactly kd + ks (n.l = n.h = 1).
     one = blinn_phong(t([0.0, 0.0, 2.0]), t([0.0, 0.0, 1.0]), t([0.0, 0.0, 5.0]), t(KD[0]), 0.4, 7.5)
     torch.testing.assert_close(one, t(KD[0]) + 0.4, atol=tol, rtol=0)

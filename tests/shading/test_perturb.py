@@ -27,12 +27,12 @@ FILTERS = [("bilinear", False), ("bicubic", False), ("trilinear", True), ("aniso
 
 @pytest.mark.parametrize("method", ["analytic", "difference"])
 @pytest.mark.parametrize("filter,mip", FILTERS)
-def test_constant_height_leaves_normals_unchanged(filter, mip, method):
-    uv = _uv()
-    frames = random_frames((1, 5, 5))
+def test_constant_height_leaves_normals_unchanged(filter, mip, method, device):
+    uv = _uv().to(device)
+    frames = random_frames((1, 5, 5)).to(device)
     kw = _derivs(uv, 4 / 64) if mip else {}
-    out = bump(torch.full((1, 1, 64, 64), 0.7, dtype=torch.float64), uv, frames, 3.0, method=method,
-               filter=filter, **kw)
+    out = bump(torch.full((1, 1, 64, 64), 0.7, dtype=torch.float64, device=device), uv, frames, 3.0,
+               method=method, filter=filter, **kw)
     torch.testing.assert_close(out, frames[..., 2, :], atol=1e-12, rtol=0)
 
 
@@ -43,13 +43,13 @@ RAMP_CASES = [(f, m, "analytic") for f, m in FILTERS if f != "bicubic"] + [(f, m
 
 @pytest.mark.parametrize("filter,mip,method", RAMP_CASES)
 @pytest.mark.parametrize("axis", [0, 1])
-def test_linear_ramp_tilts_by_atan_of_slope_times_scale(axis, filter, mip, method):
+def test_linear_ramp_tilts_by_atan_of_slope_times_scale(axis, filter, mip, method, device):
     s, scale, W = 0.8, 1.5, 64
-    x = (torch.arange(W, dtype=torch.float64) + 0.5) / W  # texel centres: the interpolant is s * u exactly
+    x = (torch.arange(W, dtype=torch.float64, device=device) + 0.5) / W  # texel centres: the interpolant is s * u
     ramp = (s * x).expand(W, W)
     height = (ramp if axis == 0 else ramp.T)[None, None].contiguous()
-    uv = _uv()
-    frames = random_frames((1, 5, 5), seed=4)
+    uv = _uv().to(device)
+    frames = random_frames((1, 5, 5), seed=4).to(device)
     kw = _derivs(uv, 4 / W) if mip else {}
     n = bump(height, uv, frames, scale, method=method, filter=filter, wrap="clamp", **kw)
     local = (frames @ n.unsqueeze(-1)).squeeze(-1)  # tangent-space components (T, B, N)
