@@ -7,7 +7,7 @@ from typing import Union
 import torch
 from torch import Tensor
 
-from .._checks import check_float, check_same, describe
+from .._checks import check_float, check_same
 
 Operand = Union[Tensor, float]
 
@@ -58,4 +58,4 @@ def broadcast(shapes: dict[str, torch.Size]) -> torch.Size:
         raise ValueError(f"shapes do not broadcast ({listed})") from None
 
 
-__all__ = ["unit", "dot", "check_vectors", "operand", "broadcast", "describe"]
+__all__ = ["unit", "dot", "check_vectors", "operand", "broadcast"]

@@ -7,8 +7,8 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from .._checks import check_float
-from .common import Operand, broadcast, check_vectors, describe, dot, operand, unit
+from .._checks import check_float, describe
+from .common import Operand, broadcast, check_vectors, dot, operand, unit
 
 MODES = ("replace", "modulate", "decal")
 

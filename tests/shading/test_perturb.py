@@ -126,6 +126,17 @@ def test_gradcheck_bump_and_normal_map():
     assert torch.autograd.gradcheck(lambda t, uv, fr: normal_map(t, uv, fr), (tex, uv, frames))
 
 
+def test_a_mipmap_height_reads_like_the_plain_tensor():
+    import difftex
+
+    g = torch.Generator().manual_seed(2)
+    h = torch.rand(1, 1, 16, 16, dtype=torch.float64, generator=g)
+    uv = _uv()
+    frames = random_frames((1, 5, 5), seed=3)
+    kw = dict(filter="trilinear", **_derivs(uv, 0.2))
+    torch.testing.assert_close(bump(difftex.mipmap(h), uv, frames, 0.5, **kw), bump(h, uv, frames, 0.5, **kw))
+
+
 def test_no_grad_and_batches():
     h = torch.rand(2, 1, 8, 8)
     uv = _uv(dtype=torch.float32)
