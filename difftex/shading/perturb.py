@@ -68,7 +68,10 @@ def height_slope(
         method: "analytic": the derivative of the filter's interpolant
             (``sample`` differentiated with respect to uv; for "bilinear"
             piecewise linear, continuous along the other axis; "bicubic"
-            is continuous; the mip filters differentiate each level's
+            is continuous but, with grid_sample's Keys a = -0.75, does
+            not reproduce a linear ramp: its slope on a ramp of slope s
+            swings by about 16% around s within each texel; the mip
+            filters differentiate each level's
             bilinear taps at the level their footprint chooses);
             "difference": the seed notes' forward difference
             ``(h(u + 1/W) - h(u)) * W`` (one level-0 texel; likewise in v).
