@@ -67,7 +67,8 @@ def height_slope(
             as :func:`difftex.sample` (the mip filters need uv_dx / uv_dy).
         method: "analytic": the derivative of the filter's interpolant
             (``sample`` differentiated with respect to uv; for "bilinear"
-            piecewise linear, continuous along the other axis; "bicubic"
+            dh/du is constant in u between texel centres, where it jumps,
+            and linear in v (likewise dh/dv); "bicubic"
             is continuous but, with grid_sample's Keys a = -0.75, does
             not reproduce a linear ramp: its slope on a ramp of slope s
             swings by about 16% around s within each texel; the mip
