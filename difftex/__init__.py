@@ -5,7 +5,9 @@ DESIGN.md; this module only re-exports the public API. The subpackages:
 ``geometry`` (camera, mesh, rasterize, interpolate), ``texture`` (sample,
 level of detail, mipmaps, filters, the native kernel), ``mapping`` (uv
 generators, texture matrix), ``envmap`` (environment-map directions),
-``io`` (images, meshes), ``nn`` (modules), ``metrics``, ``backend``.
+``io`` (images, meshes), ``nn`` (modules), ``metrics``, ``backend``,
+``shading`` (Blinn-Phong, texture modes, tangent frames, bump / normal /
+displacement maps).
 """
 
 from . import envmap, io, mapping, metrics
@@ -16,6 +18,8 @@ from .io import load_mesh, load_texture, save_image
 from .mapping import (box_uv, cylindrical_uv, normal_uv, planar_uv, spherical_uv, texture_matrix,
                       uv_transform)
 from .nn import TexturedMesh
+from . import shading
+from .shading import blinn_phong, bump, combine, displace, normal_map, tangent_frames
 from .texture import WRAP_MODES, Mipmap, levels_needed, lod, mipmap, sample
 from .texture import ambient_occlusion, bake, noise, sample3d
 
@@ -27,4 +31,6 @@ __all__ = [
     "normal_uv", "planar_uv", "rasterize", "sample", "save_image", "spherical_uv", "texture_matrix", "uv_transform",
     # textures in shading: baking, solid and 3D textures
     "ambient_occlusion", "bake", "noise", "sample3d",
+    # shading (issue 17)
+    "shading", "blinn_phong", "bump", "combine", "displace", "normal_map", "tangent_frames",
 ]

@@ -127,6 +127,8 @@ PUBLIC = {
     "backend", "envmap", "metrics", "equirect_uv_to_direction", "cube_to_direction",
     # textures in shading: baking, solid and 3D textures
     "ambient_occlusion", "bake", "noise", "sample3d",
+    # shading (issue 17)
+    "shading", "blinn_phong", "bump", "combine", "displace", "normal_map", "tangent_frames",
 }
 
 

@@ -1,7 +1,7 @@
 """Geometry: cameras, the mesh type, the rasterizer and attribute interpolation with screen-space derivatives."""
 from . import camera
 from .interpolate import interpolate
-from .mesh import Mesh
+from .mesh import Mesh, vertex_normals
 from .raster import Fragments, rasterize
 
-__all__ = ["camera", "interpolate", "Mesh", "Fragments", "rasterize"]
+__all__ = ["camera", "interpolate", "Mesh", "Fragments", "rasterize", "vertex_normals"]

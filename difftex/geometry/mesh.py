@@ -5,6 +5,9 @@ from dataclasses import dataclass
 from typing import Optional
 
 import torch
+from torch import Tensor
+
+from .._checks import check_float, check_index
 
 
 @dataclass(frozen=True)
@@ -66,3 +69,32 @@ class Mesh:
         faces = rank[inverse].reshape(-1, 3)
         return self.positions[uniq[:, 0]], self.uv[uniq[:, 1]], faces
 
+
+
+def unit(x: Tensor) -> Tensor:
+    """``x / |x|`` along the last axis; a zero vector stays zero, with a zero gradient (no NaN, no inf)."""
+    length = x.norm(dim=-1, keepdim=True)
+    ok = length > 0
+    # The inner where keeps the division finite where the outer one discards it.
+    return torch.where(ok, x / torch.where(ok, length, torch.ones_like(length)), torch.zeros_like(x))
+
+
+def vertex_normals(positions: Tensor, faces: Tensor) -> Tensor:
+    """Area-weighted vertex normals: the normalised sum of the adjacent faces' cross products.
+
+    Args:
+        positions: [V, 3] float. faces: [F, 3] integer, counter-clockwise
+            seen from the side the normals point to.
+
+    Returns:
+        [V, 3] unit normals (zero for a vertex with no face of non-zero area).
+
+    Differentiable with respect to ``positions``. Raises TypeError /
+    ValueError naming the argument on bad dtypes, shapes or indices.
+    """
+    positions = check_float("positions", positions, ndim=2, last=3, shape_doc="[V, 3]")
+    faces = check_index("faces", faces, positions.shape[0], "number of vertices", positions.device)
+    p = positions[faces]  # [F, 3, 3]
+    fn = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # length = 2 * area
+    n = torch.zeros_like(positions).index_add(0, faces.reshape(-1), fn.repeat_interleave(3, dim=0))
+    return unit(n)

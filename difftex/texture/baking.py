@@ -23,6 +23,7 @@ from torch import Tensor
 
 from .._checks import check_float, check_index, describe
 from ..geometry import Mesh, interpolate, rasterize
+from ..geometry.mesh import unit, vertex_normals
 
 # Shadow maps rendered per rasterizer call in occlusion().
 _VIEWS_PER_PASS = 8
@@ -51,34 +52,6 @@ def _check_count(name: str, n: object, low: int) -> int:
     if isinstance(n, bool) or not isinstance(n, int) or n < low:
         raise ValueError(f"{name}: expected an int >= {low}, got {n!r}")
     return n
-
-
-def vertex_normals(positions: Tensor, faces: Tensor) -> Tensor:
-    """Area-weighted vertex normals: the normalised sum of the adjacent faces' cross products.
-
-    Args:
-        positions: [V, 3] float. faces: [F, 3] integer, counter-clockwise
-            seen from outside (the normals point outwards).
-
-    Returns:
-        [V, 3] unit normals (zero for a vertex with no face of non-zero area).
-
-    Differentiable with respect to ``positions``. Raises TypeError /
-    ValueError naming the argument on bad input.
-    """
-    positions = check_float("positions", positions, ndim=2, last=3, shape_doc="[V, 3]")
-    faces = check_index("faces", faces, positions.shape[0], "number of vertices", positions.device)
-    p = positions[faces]  # [F, 3, 3]
-    fn = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # length = 2 * area
-    n = torch.zeros_like(positions).index_add(0, faces.reshape(-1), fn.repeat_interleave(3, dim=0))
-    return _normalize(n)
-
-
-def _normalize(n: Tensor) -> Tensor:
-    length = n.norm(dim=-1, keepdim=True)
-    # The double where keeps zero vectors at zero with a finite gradient.
-    ok = length > 0
-    return torch.where(ok, n / torch.where(ok, length, torch.ones_like(length)), torch.zeros_like(n))
 
 
 def uv_clip_positions(uv: Tensor) -> Tensor:
@@ -163,7 +136,7 @@ def bake(mesh: Mesh, fn: Callable[[Tensor, Tensor], Tensor], size: int | Sequenc
         normals = interpolate(mesh.normals, mesh.uv_faces, frags, attr_faces=mesh.normal_faces)[0][mask]
     else:
         normals = interpolate(vertex_normals(pos, mesh.faces), mesh.uv_faces, frags, attr_faces=mesh.faces)[0][mask]
-    normals = _normalize(normals)
+    normals = unit(normals)
     values = fn(points, normals)
     if not isinstance(values, Tensor) or not values.is_floating_point():
         raise TypeError(f"fn: expected it to return a float tensor [N, C], got "
@@ -198,7 +171,7 @@ def sphere_directions(n: int, *, dtype: torch.dtype = torch.float32,
 def _frames(d: Tensor) -> tuple[Tensor, Tensor]:
     """Two unit vectors completing each direction of d [K, 3] to an orthonormal frame."""
     a = torch.where((d[:, :1].abs() < 0.9), d.new_tensor([1.0, 0.0, 0.0]), d.new_tensor([0.0, 1.0, 0.0]))
-    e1 = _normalize(torch.linalg.cross(d, a))
+    e1 = unit(torch.linalg.cross(d, a))
     return e1, torch.linalg.cross(d, e1)
 
 
@@ -238,7 +211,7 @@ def occlusion(positions: Tensor, faces: Tensor, points: Tensor, normals: Tensor,
     dtype, device = positions.dtype, positions.device
     if isinstance(directions, Tensor):
         d = check_float("directions", directions, ndim=2, last=3, shape_doc="[K, 3]").to(dtype=dtype, device=device)
-        d = _normalize(d)
+        d = unit(d)
     else:
         d = sphere_directions(_check_count("directions", directions, 1), dtype=dtype, device=device)
     with torch.no_grad():
