@@ -3,5 +3,8 @@ from . import camera
 from .interpolate import interpolate
 from .mesh import Mesh
 from .raster import Fragments, rasterize
+from .antialias import antialias, silhouette_edges
+from .composite import composite
+from .painter import painter
 
-__all__ = ["camera", "interpolate", "Mesh", "Fragments", "rasterize"]
+__all__ = ["camera", "interpolate", "Mesh", "Fragments", "rasterize", "antialias", "silhouette_edges", "composite", "painter"]
