@@ -76,8 +76,10 @@ def pose_error_deg(R: torch.Tensor, R_true: torch.Tensor) -> float:
     """Angle (degrees) between R and the nearest symmetric copy R_true S of the true rotation."""
     Rs = R_true.to(torch.float64) @ cube_symmetries()
     rel = R.to(torch.float64).T @ Rs
-    cos = ((rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
-    return float(torch.rad2deg(torch.acos(cos)).min())
+    cos = (rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
+    # atan2 of the skew part: exact near 0, where acos of a rounded cosine is not.
+    sin = torch.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1)
+    return float(torch.rad2deg(torch.atan2(sin.norm(dim=-1) / 2, cos)).min())
 
 
 def view_matrices(views: int, dist: float = 3.2, dtype=torch.float32) -> torch.Tensor:
