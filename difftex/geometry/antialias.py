@@ -175,7 +175,7 @@ def _pairs(color: Tensor, frags: Fragments, pos: Tensor, faces: Tensor, sil: Ten
         pf = pb if sil.shape[0] > 1 else torch.zeros_like(pb)
         ok = cross & front & within & mine & sil[pf, f]
         any_ok = ok.any(1)
-        k = torch.argmax(ok.to(torch.uint8), dim=1)  # the first edge that qualifies
+        k = torch.argmax(ok.to(torch.int32), dim=1)  # the first edge that qualifies (argmax returns the first)
     sel = torch.nonzero(any_ok).squeeze(1)
     if sel.numel() == 0:
         return flat_a[:0], color.new_zeros((0, C))

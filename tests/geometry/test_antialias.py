@@ -39,27 +39,30 @@ def _supersampled_loss(pos, faces, H, W, wt):
 
 
 def test_gradient_matches_supersampled_coverage_finite_difference():
-    # d/d(vertex) of a weighted coverage sum: antialias's analytic gradient
+    # d/d(corner) of a weighted coverage sum: antialias's analytic gradient
     # against a central difference (half a pixel each way) of the 16x16
-    # supersampled coverage. Measured at 48x48: within 2.6% on every
-    # corner and axis; the rest is antialias's approximation near corners
-    # (rows where the tip covers no pixel centre blend nothing).
+    # supersampled coverage, for every corner and axis. Measured at 48x48:
+    # 0.08-2.9% on five, 7.5% on the apex moving along the triangle's axis
+    # (corner 2, y): rows where the thin tip covers no pixel centre blend
+    # nothing, and the apex's motion counts most there. Mean 2.3%.
     H = W = 48
     pos, faces = _triangle()
     wt = _weights(H, W, pos.dtype)
     p = pos.clone().requires_grad_(True)
     _aa_loss(p, faces, H, W, wt).backward()
-    for v, comp in ((1, 0), (0, 1)):
-        h = 0.5 * 2 / W  # half a pixel, in NDC
-        d = torch.zeros_like(pos)
-        d[v, comp] = h * pos[v, 3]  # moves the projected corner by h
-        fd = (_supersampled_loss(pos + d, faces, H, W, wt) - _supersampled_loss(pos - d, faces, H, W, wt)) / (2 * h)
-        analytic = p.grad[v, comp] * pos[v, 3]  # per NDC unit of the projected corner (x_ndc = x / w)
-        assert abs(analytic) > 50  # a real silhouette gradient, not a vanishing one
-        assert torch.isclose(analytic, fd, rtol=0.04), (v, comp, float(analytic), float(fd))
-    # Without antialiasing the image is piecewise constant: no gradient at all.
-    frags = rasterize(p, faces, (H, W))
-    assert frags.mask.to(p.dtype).requires_grad is False
+    rel = []
+    for v in range(3):
+        for comp in (0, 1):
+            h = 0.5 * 2 / W  # half a pixel, in NDC
+            d = torch.zeros_like(pos)
+            d[v, comp] = h * pos[v, 3]  # moves the projected corner by h
+            fd = (_supersampled_loss(pos + d, faces, H, W, wt) - _supersampled_loss(pos - d, faces, H, W, wt)) / (2 * h)
+            analytic = p.grad[v, comp] * pos[v, 3]  # per NDC unit of the projected corner (x_ndc = x / w)
+            assert abs(fd) > 50  # a real silhouette gradient, not a vanishing one
+            rel.append(float(abs(analytic - fd) / abs(fd)))
+    print(rel)
+    assert max(rel) < 0.09
+    assert sum(rel) / len(rel) < 0.03
 
 
 def test_values_approach_the_supersampled_coverage():
@@ -160,12 +163,12 @@ def test_degenerate_edges_give_no_nan():
 
 def test_no_silhouette_returns_color_unchanged():
     pos, faces = _triangle()
-    frags = rasterize(pos, faces[:0], (8, 8))
+    views = pos.expand(2, 3, 4)
     color = torch.rand(2, 3, 8, 8, dtype=torch.float64)
-    out = antialias(color, rasterize(pos, faces[:0], (8, 8)).__class__(
-        frags.tri_id.expand(2, 8, 8), frags.bary.expand(2, 8, 8, 3), frags.depth.expand(2, 8, 8),
-        frags.bary_dx.expand(2, 8, 8, 3), frags.bary_dy.expand(2, 8, 8, 3)), pos, faces)
-    assert torch.equal(out, color)
+    assert torch.equal(antialias(color, rasterize(views, faces[:0], (8, 8)), views, faces[:0]), color)
+    # A triangle covering the whole image has no silhouette pixel pair either.
+    big = torch.tensor([[-3.0, -3.0, 0, 1], [3.0, -3.0, 0, 1], [0.0, 3.0, 0, 1]], dtype=torch.float64)
+    assert torch.equal(antialias(color[:1], rasterize(big, faces, (8, 8)), big, faces), color[:1])
 
 
 def test_bad_input_raises():
