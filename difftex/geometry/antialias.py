@@ -19,10 +19,11 @@ whose half the crossing lies takes the other pixel's colour with weight
 
     t < 0.5:  A += (0.5 - t) (B - A)        t > 0.5:  B += (t - 0.5) (A - B)
 
-For a straight edge that crosses the pixel's row (or column) inside the
-pixel box this is exactly the box-filtered coverage of that pixel, and it
-is continuous as the edge passes a pixel centre (weight 0.5 on either
-side). ``t`` is a rational function of the edge's clip-space endpoints,
+For a straight edge that enters and leaves the pixel box through its top
+and bottom sides (left and right sides for a flat edge) this is exactly the
+box-filtered coverage of that pixel; near the edge's ends and where it
+cuts a corner of the box it is an approximation. It is continuous as the
+edge passes a pixel centre (weight 0.5 on either side). ``t`` is a rational function of the edge's clip-space endpoints,
 which is where the gradient to the positions comes from.
 
 Each edge is handled by one direction only, by its slope in pixels: edges

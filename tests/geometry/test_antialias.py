@@ -149,7 +149,7 @@ def test_degenerate_edges_give_no_nan():
     # centres, a corner at w = 0 and one behind the eye.
     pos = torch.tensor([
         [-0.5, -0.5, 0.0, 1.0], [0.5, -0.5, 0.0, 1.0], [0.5, -0.5, 0.0, 1.0],  # degenerate
-        [-0.875, -0.875, 0.0, 1.0], [0.875, -0.875, 0.0, 1.0], [-0.875, 0.875, 0.0, 1.0],  # edges on pixel centres (8x8)
+        [-0.875, -0.875, 0.0, 1.0], [0.875, -0.875, 0.0, 1.0], [-0.875, 0.875, 0.0, 1.0],  # edges on centres
         [0.2, 0.3, 0.0, 0.0], [0.9, 0.1, 0.5, 1.0], [0.4, 0.9, 0.3, -1.0],  # w = 0 and w < 0
     ], dtype=torch.float64, requires_grad=True)
     faces = torch.tensor([[0, 1, 2], [3, 4, 5], [6, 7, 8]])
