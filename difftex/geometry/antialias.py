@@ -11,7 +11,8 @@ positions of the edge's vertices.
 For every pair of neighbouring pixels A, B (left / right, or top /
 bottom) with different triangle ids, the nearer of the two triangles
 (background is farthest) is the candidate occluder; if one of its
-silhouette edges crosses the segment between the two pixel centres at
+silhouette edges (or, beyond the paper, one of its two rings of edge
+neighbours': see below) crosses the segment between the two pixel centres at
 ``t`` (0 at A's centre, 1 at B's), the boundary between the surfaces lies
 there instead of at the pixels' common side (t = 0.5), and the pixel on
 whose half the crossing lies takes the other pixel's colour with weight
@@ -34,6 +35,16 @@ front-, one back-facing), or more than two; edges between two triangles
 facing the same way are interior and are not blended (their colours meet
 without a depth discontinuity). Triangles' corners at w <= 0 give no
 blend on their edges.
+
+Small triangles: near a smooth silhouette the faces turn edge-on and
+project to slivers that rarely hold a pixel centre, so the silhouette edge
+that crosses a pixel segment often belongs to a sliver next to the pixel's
+triangle. Testing the occluder's own edges only (the paper's test) then
+finds few edges: on spot at 128x128 (triangles 2-3 pixels wide) the mean
+error of edge pixels against 8x8 supersampled coverage goes 0.233 ->
+0.183. Testing also the faces within two edge-neighbour rings (up to 13
+faces) gives 0.093 (three rings: 0.065 at 6x the cost); on a cube 0.242 ->
+0.013. Pairs whose rings hold no silhouette edge are skipped first.
 """
 from __future__ import annotations
 
@@ -44,6 +55,10 @@ from .._checks import check_float, check_index, describe
 from .raster import Fragments
 
 __all__ = ["antialias", "silhouette_edges"]
+
+# Rings of edge neighbours whose silhouette edges a pixel pair also tests
+# (see antialias): 2 rings = up to 13 faces, 39 edges per pair.
+_RINGS = 2
 
 
 def _edge_partner(faces: Tensor, num_vertices: int) -> Tensor:
@@ -92,15 +107,22 @@ def silhouette_edges(pos: Tensor, faces: Tensor) -> Tensor:
 
 
 def _silhouettes(pos: Tensor, faces: Tensor) -> Tensor:
+    return _topology(pos, faces)[0]
+
+
+def _topology(pos: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+    """([B, F, 3] silhouette flags, [F, 3] the face across each edge or -1)."""
     F = faces.shape[0]
     if F == 0:
-        return torch.zeros((pos.shape[0], 0, 3), dtype=torch.bool, device=pos.device)
+        empty = torch.zeros((0, 3), dtype=torch.int64, device=pos.device)
+        return torch.zeros((pos.shape[0], 0, 3), dtype=torch.bool, device=pos.device), empty
     partner = _edge_partner(faces, pos.shape[1])
     v = pos[:, faces].to(torch.float64)  # the sign of a det: float64 keeps near-degenerate faces honest
     facing = _det_sign(v)  # [B, F]
     pf = torch.div(partner.clamp_min(0), 3, rounding_mode="floor")
     other = facing[:, pf]  # [B, F, 3]
-    return (partner < 0)[None] | (other != facing[:, :, None])
+    sil = (partner < 0)[None] | (other != facing[:, :, None])
+    return sil, torch.where(partner < 0, -1, pf)
 
 
 def _check_pos(pos: object) -> Tensor:
@@ -112,7 +134,8 @@ def _check_pos(pos: object) -> Tensor:
     return pos
 
 
-def _pairs(color: Tensor, frags: Fragments, pos: Tensor, faces: Tensor, sil: Tensor, dim: int) -> tuple[Tensor, Tensor]:
+def _pairs(color: Tensor, frags: Fragments, pos: Tensor, faces: Tensor, sil: Tensor, ring: Tensor,
+           near: Tensor, dim: int) -> tuple[Tensor, Tensor]:
     """Colour deltas of one direction of pixel pairs: (flat pixel index [2N], delta [2N, C])."""
     B, C, H, W = color.shape
     tri, depth = frags.tri_id, frags.depth
@@ -133,6 +156,10 @@ def _pairs(color: Tensor, frags: Fragments, pos: Tensor, faces: Tensor, sil: Ten
     a_front = za <= zb
     f = torch.where(a_front, fa, fb)  # >= 0: the two ids differ, so not both are background
     b = torch.div(flat_a, H * W, rounding_mode="floor")
+    # Most pairs with different ids lie inside a surface, far from any
+    # silhouette: drop them before the per-edge work.
+    keep = torch.nonzero(near[b if near.shape[0] > 1 else torch.zeros_like(b), f]).squeeze(1)
+    flat_a, f, b = flat_a[keep], f[keep], b[keep]
     rc = flat_a - b * (H * W)
     r = torch.div(rc, W, rounding_mode="floor")
     c = rc - r * W
@@ -144,13 +171,18 @@ def _pairs(color: Tensor, frags: Fragments, pos: Tensor, faces: Tensor, sil: Ten
     yb = ya - (2.0 / H if dim == 1 else 0.0)
 
     pb = b if pos.shape[0] > 1 else torch.zeros_like(b)
-    vid = pb[:, None] * pos.shape[1] + faces[f]  # [N, 3]
-    v = pos.reshape(-1, 4).index_select(0, vid.reshape(-1)).view(-1, 3, 4)
+    cand = ring[f]  # [N, R], -1 = none
+    has = cand >= 0
+    cand = cand.clamp_min(0)
+    n_c = cand.shape[1]
+    vid = pb[:, None, None] * pos.shape[1] + faces[cand]  # [N, 4, 3]
+    v = pos.reshape(-1, 4).index_select(0, vid.reshape(-1)).view(-1, 3, 4)  # [N * 4, 3, 4]
     # A positive factor per triangle leaves every homogeneous line and
     # crossing unchanged and keeps the products below from overflowing.
     _, ex = torch.frexp(v.detach().abs().amax(dim=(1, 2)))
     v = v * torch.ldexp(torch.ones_like(v[:, 0, 0]), -ex)[:, None, None]
     h1, h2 = v.roll(-1, 1), v.roll(-2, 1)  # edge k joins corners k + 1, k + 2
+    h1, h2 = h1.reshape(-1, n_c * 3, 4), h2.reshape(-1, n_c * 3, 4)  # [N, 12, 4]
     X1, Y1, W1 = h1[..., 0], h1[..., 1], h1[..., 3]
     X2, Y2, W2 = h2[..., 0], h2[..., 1], h2[..., 3]
     # The edge's line l = h1 x h2 in 2D homogeneous coordinates; l . (x, y, 1)
@@ -174,7 +206,8 @@ def _pairs(color: Tensor, frags: Fragments, pos: Tensor, faces: Tensor, sil: Ten
         steep = dyp.abs() > dxp.abs()
         mine = steep if dim == 2 else ~steep
         pf = pb if sil.shape[0] > 1 else torch.zeros_like(pb)
-        ok = cross & front & within & mine & sil[pf, f]
+        is_sil = (sil[pf[:, None], cand] & has[..., None]).reshape(-1, n_c * 3)
+        ok = cross & front & within & mine & is_sil
         any_ok = ok.any(1)
         k = torch.argmax(ok.to(torch.int32), dim=1)  # the first edge that qualifies (argmax returns the first)
     sel = torch.nonzero(any_ok).squeeze(1)
@@ -244,12 +277,25 @@ def antialias(color: Tensor, fragments: Fragments, pos: Tensor, faces: Tensor) -
     if bool((tri >= faces.shape[0]).any()):
         raise ValueError(f"fragments: tri_id refers to face {int(tri.max())} but faces has {faces.shape[0]} rows; "
                          "pass the faces given to rasterize")
-    sil = _silhouettes(pos.detach(), faces)
     out_dtype = torch.promote_types(color.dtype, pos.dtype)
     out = color.to(out_dtype)
+    if faces.shape[0] == 0:
+        return out
+    sil, nbr = _topology(pos.detach(), faces)
+    # Candidate faces per occluder: itself, then its edge neighbours and
+    # theirs (duplicates are harmless). Near a smooth silhouette the faces
+    # turn edge-on and project to slivers that rarely hold a pixel centre,
+    # so the edge that crosses a pixel segment often belongs to a sliver
+    # next to the pixel's triangle, not to the triangle itself.
+    F = faces.shape[0]
+    ring = torch.arange(F, device=pos.device)[:, None]
+    for _ in range(_RINGS):
+        step = nbr[ring.clamp_min(0)].masked_fill((ring < 0)[..., None], -1).reshape(F, -1)
+        ring = torch.cat((ring, step), 1)
+    near = (sil[:, ring.clamp_min(0)] & (ring >= 0)[None, :, :, None]).flatten(2).any(2)  # [B, F]
     idx, deltas = [], []
     for dim in (2, 1):  # left / right pairs, then top / bottom pairs
-        i, d = _pairs(color, fragments, pos, faces, sil, dim)
+        i, d = _pairs(color, fragments, pos, faces, sil, ring, near, dim)
         idx.append(i)
         deltas.append(d)
     idx_all = torch.cat(idx)

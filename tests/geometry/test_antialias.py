@@ -194,3 +194,25 @@ def test_bad_input_raises():
     with pytest.raises(ValueError, match="fragments: tri_id refers to face 0 but faces has 0 rows"):
         antialias(color, frags, pos, faces[:0])
     assert difftex.antialias is antialias
+
+
+def test_silhouettes_of_a_smooth_mesh_are_found_through_the_neighbour_rings():
+    # icosphere(3) at 96x96: faces near the outline turn edge-on and hold
+    # few pixel centres, so the crossing edge is often a neighbour's.
+    # Measured: edge-pixel mean error against 8x8 supersampled coverage
+    # 0.21 (mask) -> 0.054 (own edges only, the paper's test: 0.19).
+    from difftex.testing import icosphere
+    from tests.geometry.raster_helpers import view_matrix
+
+    verts, faces = icosphere(3, dtype=torch.float64)
+    _, view, proj = view_matrix(30.0, 20.0, 3.0)
+    pos = difftex.camera.transform(verts, proj @ view)
+    res, ss = 96, 8
+    frags = rasterize(pos, faces, (res, res))
+    mask = frags.mask.double()[:, None]
+    aa = antialias(mask, frags, pos, faces)
+    ref = F.avg_pool2d(rasterize(pos, faces, (res * ss, res * ss)).mask.double()[:, None], ss)
+    edge = (ref > 0) & (ref < 1)
+    err_mask, err_aa = float((mask - ref)[edge].abs().mean()), float((aa - ref)[edge].abs().mean())
+    print(err_mask, err_aa)
+    assert err_aa < err_mask / 3
