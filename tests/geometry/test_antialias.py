@@ -142,6 +142,11 @@ def test_batch_and_dtypes_agree(device):
             single = antialias(color[b:b + 1], fb, p[b], faces)
             assert torch.equal(single, outs[dtype][b:b + 1])
     assert torch.allclose(outs[torch.float32].double(), outs[torch.float64], atol=1e-5)
+    # One set of positions (B = 1) serves a batch of images of it.
+    one = pos.to(device)
+    frags = rasterize(one.expand(2, 3, 4), faces, (20, 20))
+    color = torch.rand(2, 3, 20, 20, dtype=torch.float64, device=device)
+    assert torch.equal(antialias(color, frags, one, faces), antialias(color, frags, one.expand(2, 3, 4), faces))
 
 
 def test_degenerate_edges_give_no_nan():
