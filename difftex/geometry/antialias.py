@@ -54,11 +54,11 @@ from torch import Tensor
 from .._checks import check_float, check_index, describe
 from .raster import Fragments
 
-__all__ = ["antialias", "silhouette_edges"]
+__all__ = ["antialias", "silhouette_edges", "RINGS"]
 
-# Rings of edge neighbours whose silhouette edges a pixel pair also tests
-# (see antialias): 2 rings = up to 13 faces, 39 edges per pair.
-_RINGS = 2
+#: Default ``rings`` of :func:`antialias`: the pixel's triangle and two rings
+#: of edge neighbours (up to 13 faces, 39 edges per pixel pair).
+RINGS = 2
 
 
 def _edge_partner(faces: Tensor, num_vertices: int) -> Tensor:
@@ -231,7 +231,7 @@ def _pairs(color: Tensor, frags: Fragments, pos: Tensor, faces: Tensor, sil: Ten
     return torch.cat((flat_a, flat_b)), torch.cat((da, db))
 
 
-def antialias(color: Tensor, fragments: Fragments, pos: Tensor, faces: Tensor) -> Tensor:
+def antialias(color: Tensor, fragments: Fragments, pos: Tensor, faces: Tensor, *, rings: int = RINGS) -> Tensor:
     """Blend colours across silhouette edges by their coverage, with gradients to the vertex positions.
 
     Args:
@@ -243,6 +243,11 @@ def antialias(color: Tensor, fragments: Fragments, pos: Tensor, faces: Tensor) -
         pos: [B, V, 4] or [V, 4] clip-space positions given to rasterize
             (B = 1 serves every image).
         faces: [F, 3] the faces given to rasterize.
+        rings: how many rings of edge neighbours of the nearer pixel's
+            triangle have their silhouette edges tested too; 0 is the
+            paper's test (the triangle's own edges). More rings find more
+            silhouettes of finely tessellated meshes, at 3x the edge tests
+            per ring (see the module docs for measurements).
 
     Returns:
         [B, C, H, W], ``color`` with every silhouette edge's coverage
@@ -256,10 +261,12 @@ def antialias(color: Tensor, fragments: Fragments, pos: Tensor, faces: Tensor) -
     (zero length, through the eye, w <= 0) blend nothing and give finite
     gradients. Raises TypeError on non-float ``color`` / ``pos`` or a
     ``fragments`` of another type, ValueError naming the argument on bad
-    shapes, batch or resolution mismatches, non-finite ``pos`` and
-    out-of-range ``faces``.
+    shapes, batch or resolution mismatches, non-finite ``pos``,
+    out-of-range ``faces`` and a negative ``rings``.
     """
     check_float("color", color, 4, shape_doc="[B, C, H, W]")
+    if isinstance(rings, bool) or not isinstance(rings, int) or rings < 0:
+        raise ValueError(f"rings: expected an int >= 0, got {rings!r}")
     if not isinstance(fragments, Fragments):
         raise TypeError(f"fragments: expected a difftex.Fragments, got {type(fragments).__name__}")
     pos = _check_pos(pos)
@@ -289,7 +296,7 @@ def antialias(color: Tensor, fragments: Fragments, pos: Tensor, faces: Tensor) -
     # next to the pixel's triangle, not to the triangle itself.
     F = faces.shape[0]
     ring = torch.arange(F, device=pos.device)[:, None]
-    for _ in range(_RINGS):
+    for _ in range(rings):
         step = nbr[ring.clamp_min(0)].masked_fill((ring < 0)[..., None], -1).reshape(F, -1)
         ring = torch.cat((ring, step), 1)
     near = (sil[:, ring.clamp_min(0)] & (ring >= 0)[None, :, :, None]).flatten(2).any(2)  # [B, F]

@@ -196,6 +196,8 @@ def test_bad_input_raises():
         antialias(color, frags, pos * float("nan"), faces)
     with pytest.raises(ValueError, match=r"faces indices must lie in \[0, 2\]"):
         antialias(color, frags, pos, faces + 1)
+    with pytest.raises(ValueError, match="rings: expected an int >= 0, got -1"):
+        antialias(color, frags, pos, faces, rings=-1)
     with pytest.raises(ValueError, match="fragments: tri_id refers to face 0 but faces has 0 rows"):
         antialias(color, frags, pos, faces[:0])
     assert difftex.antialias is antialias
@@ -219,5 +221,8 @@ def test_silhouettes_of_a_smooth_mesh_are_found_through_the_neighbour_rings():
     ref = F.avg_pool2d(rasterize(pos, faces, (res * ss, res * ss)).mask.double()[:, None], ss)
     edge = (ref > 0) & (ref < 1)
     err_mask, err_aa = float((mask - ref)[edge].abs().mean()), float((aa - ref)[edge].abs().mean())
-    print(err_mask, err_aa)
+    own = antialias(mask, frags, pos, faces, rings=0)
+    err_own = float((own - ref)[edge].abs().mean())
+    print(err_mask, err_own, err_aa)
     assert err_aa < err_mask / 3
+    assert err_own > 2 * err_aa
