@@ -226,3 +226,26 @@ def test_silhouettes_of_a_smooth_mesh_are_found_through_the_neighbour_rings():
     print(err_mask, err_own, err_aa)
     assert err_aa < err_mask / 3
     assert err_own > 2 * err_aa
+
+
+def test_an_occluder_over_another_surface_blends_both_colours():
+    # The perspective triangle (colour 1, nearer) over a big quad (colour 0.4) over background (0):
+    # its outline is blended with the quad's colour where the quad is behind, with 0 elsewhere.
+    tri, _ = _triangle()
+    quad = torch.tensor([[-0.9, -0.3, 0.6, 1], [0.3, -0.9, 0.6, 1], [0.9, 0.9, 0.6, 1], [-0.2, 0.8, 0.6, 1]],
+                        dtype=torch.float64)
+    pos = torch.cat([tri, quad])
+    faces = torch.tensor([[0, 1, 2], [3, 4, 5], [3, 5, 6]])
+    shade = torch.tensor([1.0, 0.4, 0.4], dtype=torch.float64)
+
+    def image(res):
+        frags = rasterize(pos, faces, (res, res))
+        return frags, torch.where(frags.mask, shade[frags.tri_id.clamp_min(0)], 0.0)[:, None]
+
+    frags, img = image(32)
+    ref = F.avg_pool2d(image(32 * SS)[1], SS)
+    aa = antialias(img, frags, pos, faces)
+    edge = (ref - img).abs() > 1e-9
+    err_aa, err_img = (aa - ref)[edge].abs().mean(), (img - ref)[edge].abs().mean()
+    print(float(err_img), float(err_aa))
+    assert err_aa < err_img / 3
