@@ -44,7 +44,9 @@ finds few edges: on spot at 128x128 (triangles 2-3 pixels wide) the mean
 error of edge pixels against 8x8 supersampled coverage goes 0.233 ->
 0.183. Testing also the faces within two edge-neighbour rings (up to 13
 faces) gives 0.093 (three rings: 0.065 at 6x the cost); on a cube 0.242 ->
-0.013. Pairs whose rings hold no silhouette edge are skipped first.
+0.013. Pairs whose rings hold no silhouette edge are skipped first. Cost on
+spot at 512x512, forward and backward, one thread: 46 / 56 / 115 / 237 ms
+for rings 0 / 1 / 2 / 3 (rasterize: 104 ms), measured on a loaded machine.
 """
 from __future__ import annotations
 
@@ -57,7 +59,8 @@ from .raster import Fragments
 __all__ = ["antialias", "silhouette_edges", "RINGS"]
 
 #: Default ``rings`` of :func:`antialias`: the pixel's triangle and two rings
-#: of edge neighbours (up to 13 faces, 39 edges per pixel pair).
+#: of edge neighbours (10 distinct faces, 30 edges per pixel pair on a mesh
+#: of valence 6).
 RINGS = 2
 
 
@@ -123,6 +126,18 @@ def _topology(pos: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
     other = facing[:, pf]  # [B, F, 3]
     sil = (partner < 0)[None] | (other != facing[:, :, None])
     return sil, torch.where(partner < 0, -1, pf)
+
+
+def _unique_rows(ring: Tensor) -> Tensor:
+    """Each row's distinct entries >= 0 in first-seen order, padded with -1, as narrow as the widest row."""
+    R = ring.shape[1]
+    earlier = torch.ones(R, R, dtype=torch.bool, device=ring.device).triu(1)  # [i, j]: i < j
+    dup = ((ring[:, :, None] == ring[:, None, :]) & earlier).any(1)
+    ring = ring.masked_fill(dup, -1)
+    order = torch.argsort((ring < 0).to(torch.int8), dim=1, stable=True)
+    ring = ring.gather(1, order)
+    width = max(1, int((ring >= 0).sum(1).max())) if ring.shape[0] > 0 else 1
+    return ring[:, :width]
 
 
 def _check_pos(pos: object) -> Tensor:
@@ -298,7 +313,7 @@ def antialias(color: Tensor, fragments: Fragments, pos: Tensor, faces: Tensor, *
     ring = torch.arange(F, device=pos.device)[:, None]
     for _ in range(rings):
         step = nbr[ring.clamp_min(0)].masked_fill((ring < 0)[..., None], -1).reshape(F, -1)
-        ring = torch.cat((ring, step), 1)
+        ring = _unique_rows(torch.cat((ring, step), 1))
     near = (sil[:, ring.clamp_min(0)] & (ring >= 0)[None, :, :, None]).flatten(2).any(2)  # [B, F]
     idx, deltas = [], []
     for dim in (2, 1):  # left / right pairs, then top / bottom pairs
