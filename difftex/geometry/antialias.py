@@ -11,12 +11,12 @@ positions of the edge's vertices.
 For every pair of neighbouring pixels A, B (left / right, or top /
 bottom) with different triangle ids, the nearer of the two triangles
 (background is farthest) is the candidate occluder; if one of its
-silhouette edges (or, beyond the paper, one of its two rings of edge
-neighbours': see below) crosses the segment between the two pixel centres at
-``t`` (0 at A's centre, 1 at B's), the boundary between the surfaces lies
-there instead of at the pixels' common side (t = 0.5), and the pixel on
-whose half the crossing lies takes the other pixel's colour with weight
-``|t - 0.5|``:
+silhouette edges (or, beyond the paper, a silhouette edge of a face in
+its rings of edge neighbours: see below) crosses the segment between the
+two pixel centres at ``t`` (0 at A's centre, 1 at B's), the boundary
+between the surfaces lies there instead of at the pixels' common side
+(t = 0.5), and the pixel on whose half the crossing lies takes the other
+pixel's colour with weight ``|t - 0.5|``:
 
     t < 0.5:  A += (0.5 - t) (B - A)        t > 0.5:  B += (t - 0.5) (A - B)
 
@@ -24,8 +24,9 @@ For a straight edge that enters and leaves the pixel box through its top
 and bottom sides (left and right sides for a flat edge) this is exactly the
 box-filtered coverage of that pixel; near the edge's ends and where it
 cuts a corner of the box it is an approximation. It is continuous as the
-edge passes a pixel centre (weight 0.5 on either side). ``t`` is a rational function of the edge's clip-space endpoints,
-which is where the gradient to the positions comes from.
+edge passes a pixel centre (weight 0.5 on either side). ``t`` is a
+rational function of the edge's clip-space endpoints, which is where the
+gradient to the positions comes from.
 
 Each edge is handled by one direction only, by its slope in pixels: edges
 steeper than 45 degrees by left / right pairs, flatter ones by top / bottom
@@ -42,8 +43,9 @@ that crosses a pixel segment often belongs to a sliver next to the pixel's
 triangle. Testing the occluder's own edges only (the paper's test) then
 finds few edges: on spot at 128x128 (triangles 2-3 pixels wide) the mean
 error of edge pixels against 8x8 supersampled coverage goes 0.233 ->
-0.183. Testing also the faces within two edge-neighbour rings (up to 13
-faces) gives 0.093 (three rings: 0.065 at 6x the cost); on a cube 0.242 ->
+0.183. Testing also the faces within two edge-neighbour rings (the
+default ``rings=2``: about 10 faces) gives 0.093 (three rings: 0.065 at 2x
+the cost); on a cube 0.242 ->
 0.013. Pairs whose rings hold no silhouette edge are skipped first. Cost on
 spot at 512x512, forward and backward, one thread: 46 / 56 / 115 / 237 ms
 for rings 0 / 1 / 2 / 3 (rasterize: 104 ms), measured on a loaded machine.
