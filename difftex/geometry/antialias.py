@@ -263,7 +263,7 @@ def antialias(color: Tensor, fragments: Fragments, pos: Tensor, faces: Tensor, *
         rings: how many rings of edge neighbours of the nearer pixel's
             triangle have their silhouette edges tested too; 0 is the
             paper's test (the triangle's own edges). More rings find more
-            silhouettes of finely tessellated meshes, at 3x the edge tests
+            silhouettes of finely tessellated meshes, at up to 3x the edge tests
             per ring (see the module docs for measurements).
 
     Returns:
