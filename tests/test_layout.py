@@ -129,6 +129,8 @@ PUBLIC = {
     "ambient_occlusion", "bake", "noise", "sample3d",
     # shading (issue 17)
     "shading", "blinn_phong", "bump", "combine", "displace", "normal_map", "tangent_frames",
+    # visibility (issue 16)
+    "antialias", "composite", "painter",
 }
 
 

@@ -3,5 +3,9 @@ from . import camera
 from .interpolate import interpolate
 from .mesh import Mesh, vertex_normals
 from .raster import Fragments, rasterize
+from .antialias import antialias, silhouette_edges
+from .composite import composite
+from .painter import painter
 
-__all__ = ["camera", "interpolate", "Mesh", "Fragments", "rasterize", "vertex_normals"]
+__all__ = ["camera", "interpolate", "Mesh", "Fragments", "rasterize", "vertex_normals", "antialias", "silhouette_edges",
+           "composite", "painter"]
