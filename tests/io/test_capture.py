@@ -116,6 +116,7 @@ def test_blender_style_angle_and_path_without_extension(tmp_path):
 
 def _bad_capture(tmp_path, **change):
     """Three good 8x8 frames, then ``change`` applied to the JSON of frame 1."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
     frames = []
     for i in range(3):
         difftex.save_image(tmp_path / f"f{i}.png", torch.rand(3, 8, 8))
@@ -156,7 +157,6 @@ def test_wrong_size_names_the_frame(tmp_path):
     ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 1, 1]], "last row must be"),
 ])
 def test_bad_matrix_names_the_frame(tmp_path, matrix, message):
-    (tmp_path / "b").mkdir()
     folder = _bad_capture(tmp_path / "b", transform_matrix=[[x for x in row] for row in matrix])
     with pytest.raises(ValueError, match=rf"frame 1 \('f1.png'\): transform_matrix.*{message}"):
         load_capture(folder)
