@@ -92,6 +92,18 @@ def render_all(model, frags: Fragments, batch: int) -> torch.Tensor:
         return torch.cat([model(frags=select(frags, idx))[0] for idx in torch.split(torch.arange(frags.tri_id.shape[0]), batch)])
 
 
+def peak_rss_bytes() -> int | None:
+    """This process's peak resident memory so far (resource.getrusage; None where it is unavailable)."""
+    try:
+        import resource
+    except ImportError:  # Windows
+        return None
+    import sys
+
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return int(rss if sys.platform == "darwin" else rss * 1024)  # macOS reports bytes, Linux KiB
+
+
 def _check_resume(saved: dict, config: dict) -> None:
     diff = {k: (saved.get(k), v) for k, v in config.items() if saved.get(k) != v}
     if diff:
@@ -225,6 +237,7 @@ def fit(filter: str = "trilinear", iters: int = 300, res: int = 128, views: int 
         "steps_per_second": run["steps"] / run["fit_seconds"] if run["steps"] else float("nan"),
         "processes": d.world,
         "allreduce_bytes_per_step": run["allreduce_bytes"],
+        "peak_rss_bytes": peak_rss_bytes(),
         "res": res, "views": views, "eval_views": eval_views, "batch": batch, "lr": lr, "seed": seed,
         "target_filter": target_filter,
         "seen_texels": int(seen.sum()),
@@ -333,7 +346,7 @@ def fit_capture(capture: str | Path, mesh: str | Path, filter: str = "trilinear"
         "seconds": time.perf_counter() - t0, "fit_seconds": run["fit_seconds"],
         "steps_per_second": run["steps"] / run["fit_seconds"] if run["steps"] else float("nan"),
         "processes": d.world, "allreduce_bytes_per_step": run["allreduce_bytes"],
-        "batch": batch, "lr": lr, "seed": seed, "workers": workers,
+        "peak_rss_bytes": peak_rss_bytes(), "batch": batch, "lr": lr, "seed": seed, "workers": workers,
     }
     if save:
         out = Path(out)
