@@ -355,14 +355,11 @@ def fit_capture(capture: str | Path, mesh: str | Path, filter: str = "trilinear"
         rows = [torch.cat([t, f, (4 * (f - t).abs()).clamp(0, 1)], -1) for t, f in shown]
         difftex.save_image(out / "views.png", torch.cat(rows, -2))
         difftex.save_image(out / "texture.png", model.texture.detach())
+        plot_curves(out, run["curve"], f"fit_texture --capture: filter={filter}")
     return metrics
 
 
 def write_outputs(out: Path, metrics, curve, targets, fits, tex, true_tex, seen) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     # A few views, nearest to farthest: target / fit / 4x error.
@@ -371,12 +368,21 @@ def write_outputs(out: Path, metrics, curve, targets, fits, tex, true_tex, seen)
     rows = [torch.cat([targets[i], fits[i], (4 * (fits[i] - targets[i]).abs()).clamp(0, 1)], -1) for i in pick]
     difftex.save_image(out / "views.png", torch.cat(rows, -2))
     difftex.save_image(out / "texture.png", torch.cat([tex[0], true_tex[0], seen[0].expand_as(tex[0]).to(tex.dtype)], -1))
+    plot_curves(out, curve, f"fit_texture: filter={metrics['filter']}")
+
+
+def plot_curves(out: Path, curve: dict, title: str) -> None:
+    """curves.png: the loss and the texture PSNR against the step."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
     ax[0].semilogy(curve["iter"], curve["loss"])
     ax[0].set_xlabel("iteration"); ax[0].set_ylabel("image MSE"); ax[0].set_title("loss")
     ax[1].plot(curve["iter"], curve["texture_psnr"])
     ax[1].set_xlabel("iteration"); ax[1].set_ylabel("dB"); ax[1].set_title("texture PSNR (seen texels)")
-    fig.suptitle(f"fit_texture: filter={metrics['filter']}")
+    fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(out / "curves.png", dpi=110)
     plt.close(fig)
@@ -419,7 +425,7 @@ def main(argv: list[str] | None = None) -> None:
                             args.tex_size, args.workers, args.skip_bad, args.reference_texture,
                             not args.no_progress, checkpoint_every=args.checkpoint_every, resume=args.resume,
                             device=args.device)
-            written = "metrics.json, views.png, texture.png"
+            written = "metrics.json, views.png, texture.png, curves.png"
         else:
             out = args.out or "results/fit_texture"
             m = fit(args.filter, args.iters, args.res, args.views, args.batch, args.lr, args.seed, out,
