@@ -462,13 +462,22 @@ def visible_frames(mvp: Tensor, positions: Tensor, faces: Tensor, resolution: Se
                    chunk: int = 16) -> Tensor:
     """[N] int64: covered pixels of each view of the mesh at ``resolution`` (0: the camera sees nothing of it).
 
-    Rasterizes in chunks of ``chunk`` views, so any number of views fits in
-    memory. Not differentiable.
+    Args:
+        mvp: [N, 4, 4] world -> clip matrices (e.g. :meth:`Capture.mvp`).
+        positions, faces: the mesh ([V, 3] float, [F, 3] int64).
+        resolution: (H, W) to rasterize at (the capture's, so that a sliver
+            of the mesh still counts).
+        chunk: views rasterized at once; any number of views fits in memory.
+
+    Not differentiable. Raises TypeError / ValueError naming ``mvp`` for a
+    bad matrix tensor (the rasterizer checks the rest).
     """
     from ..geometry.camera import transform
     from ..geometry.raster import rasterize
 
     check_float("mvp", mvp, 3, shape_doc="[N, 4, 4]")
+    if mvp.shape[-2:] != (4, 4):
+        raise ValueError(f"mvp: expected [N, 4, 4], got {describe(mvp)}")
     counts = []
     with torch.no_grad():
         for m in torch.split(mvp.to(positions), chunk):

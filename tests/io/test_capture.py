@@ -182,3 +182,27 @@ def test_visible_frames_counts_pixels():
     mvp = camera.perspective(40.0, 1.0, degrees=True) @ view
     counts = visible_frames(mvp, mesh.positions, mesh.faces, (16, 16), chunk=1)
     assert counts[0] > 20 and counts[1] == 0
+
+
+def test_per_frame_intrinsics_round_trip(tmp_path):
+    # Two cameras with different fields of view and an off-centre principal point: written as
+    # nerfstudio-style per-frame intrinsics, read back as the same projections.
+    P = torch.stack([camera.perspective(30.0, 1.5, 0.2, 50.0, degrees=True, dtype=torch.float64),
+                     projection_from_intrinsics(20.0, 22.0, 5.0, 3.5, 12, 8, 0.2, 50.0, dtype=torch.float64)])
+    V = camera.look_at(torch.tensor([[0.0, 0.0, 3.0], [1.0, 2.0, 3.0]], dtype=torch.float64))
+    save_capture(tmp_path, torch.rand(2, 3, 8, 12), V, P, ext=".jpg")
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    assert "fl_x" not in meta and meta["frames"][1]["cx"] == pytest.approx(5.0)
+    cap = load_capture(tmp_path)
+    assert torch.allclose(cap.mvp(torch.float64), P @ V, atol=1e-12)
+
+
+def test_save_capture_checks_arguments(tmp_path):
+    V = camera.look_at(torch.tensor([[0.0, 0.0, 3.0]]))
+    P = camera.perspective(0.8)
+    with pytest.raises(ValueError, match=r"world_to_view: expected \[2, 4, 4\] like images"):
+        save_capture(tmp_path, torch.rand(2, 3, 8, 8), V, P)
+    with pytest.raises(ValueError, match="masks are written as alpha, which needs '.png'"):
+        save_capture(tmp_path, torch.rand(1, 3, 8, 8), V, P, masks=torch.ones(1, 1, 8, 8), ext=".jpg")
+    with pytest.raises(ValueError, match="proj: expected a pinhole perspective projection"):
+        save_capture(tmp_path, torch.rand(1, 3, 8, 8), V, camera.orthographic(-1.0, 1.0, -1.0, 1.0))
