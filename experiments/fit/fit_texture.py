@@ -75,14 +75,15 @@ def select(frags: Fragments, idx: torch.Tensor) -> Fragments:
     return Fragments(*(getattr(frags, f)[idx] for f in ("tri_id", "bary", "depth", "bary_dx", "bary_dy")))
 
 
-def seen_texels(model: difftex.TexturedMesh, mvp: torch.Tensor, res: int) -> torch.Tensor:
-    """[1, 1, H, W] bool: texels that a bilinear lookup at 4x the resolution touches in some view."""
+def seen_texels(model: difftex.TexturedMesh, mvp: torch.Tensor, res: int | tuple[int, int]) -> torch.Tensor:
+    """[1, 1, H, W] bool: texels that a bilinear lookup at 4x the resolution (res or (H, W)) touches in some view."""
+    size = (4 * res, 4 * res) if isinstance(res, int) else (4 * res[0], 4 * res[1])
     tex = model.texture.detach().clone().requires_grad_()
     probe = difftex.TexturedMesh(difftex.Mesh(model.positions, model.faces, model.uv, model.uv_faces), tex,
                                  filter="bilinear", wrap=model.wrap, learn_texture=False)
     probe.texture.requires_grad_()
     for chunk in torch.split(torch.arange(mvp.shape[0]), 8):
-        img, _ = probe(mvp[chunk], (4 * res, 4 * res))
+        img, _ = probe(mvp[chunk], size)
         img.sum().backward()
     return (probe.texture.grad.abs().sum(1, keepdim=True) > 0)
 
@@ -113,7 +114,7 @@ def _check_resume(saved: dict, config: dict) -> None:
 
 def train(model: difftex.TexturedMesh, batches, sampler: StepSampler, config: dict, d: Dist, *,
           out: Path | None, checkpoint_every: int = 0, resume: bool = False, score=None,
-          touched: torch.Tensor | None = None, progress: bool = True, desc: str = "fit") -> dict:
+          progress: bool = True, desc: str = "fit") -> dict:
     """Adam on the texture (and uv) over ``config["iters"]`` steps; the loop every mode of this script shares.
 
     ``batches(share)`` returns ``(images, targets, weight or None)`` for this process's views of a step; the
@@ -140,8 +141,6 @@ def train(model: difftex.TexturedMesh, batches, sampler: StepSampler, config: di
             if not torch.equal(ck["rng"]["sampler"], sampler.state_at(ck["step"])):
                 raise ValueError("--resume: the checkpoint's sampler state differs from a replay of the seed")
             curve, start = ck["curve"], ck["step"]
-            if touched is not None and ck.get("touched") is not None:
-                touched.copy_(ck["touched"])
     sampler.start = start
     params = [p for p in model.parameters() if p.requires_grad]
     allreduce_bytes = sum(p.numel() * p.element_size() for p in params) if d.world > 1 else 0
@@ -154,8 +153,6 @@ def train(model: difftex.TexturedMesh, batches, sampler: StepSampler, config: di
         opt.zero_grad(set_to_none=True)
         loss.backward()
         runtime.all_reduce_grads(params, d)
-        if touched is not None:
-            touched |= (model.texture.grad != 0).any(1, keepdim=True)
         opt.step()
         sched.step()
         with torch.no_grad():
@@ -174,7 +171,7 @@ def train(model: difftex.TexturedMesh, batches, sampler: StepSampler, config: di
                     "step": it + 1, "texture": model.texture.detach(), "uv": model.uv.detach(),
                     "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                     "rng": {"torch": torch.get_rng_state(), "sampler": sampler.state_at(it + 1)},
-                    "config": config, "curve": curve, "touched": touched})
+                    "config": config, "curve": curve})
             runtime.barrier(d)
         runtime.maybe_kill_at(it)
     return {"curve": curve, "fit_seconds": time.perf_counter() - t_fit, "steps": iters - start,
@@ -270,7 +267,7 @@ def fit_capture(capture: str | Path, mesh: str | Path, filter: str = "trilinear"
     sees nothing of the mesh are skipped with a CaptureWarning (they would add no gradient, and a camera
     pointing away is common in a real capture); ValueError if no frame sees it (usually a wrong axis
     convention or scale). With ``reference_texture`` (same size), metrics include the texture PSNR over
-    the texels that received a gradient. Returns the metrics (rank 0; {} on the other ranks).
+    the texels the frames see (as the demo counts them). Returns the metrics (rank 0; {} on the other ranks).
     """
     d = runtime.setup(device)
     dev = d.device
@@ -310,19 +307,21 @@ def fit_capture(capture: str | Path, mesh: str | Path, filter: str = "trilinear"
             img, _ = model(frags=frags)
             yield img, b["image"].to(dev, non_blocking=True), b["mask"].to(dev, non_blocking=True)
 
-    ref = None
-    if reference_texture is not None:
+    score = None
+    if reference_texture is not None and d.main:
         ref = difftex.load_texture(reference_texture)[:, :3].to(dev)
         if ref.shape != init.shape:
             raise ValueError(f"reference_texture: expected a {tex_size}x{tex_size} RGB image like the fitted "
                              f"texture, got shape {tuple(ref.shape)}")
-    touched = torch.zeros(1, 1, tex_size, tex_size, dtype=torch.bool, device=dev) if ref is not None else None
-    score = (lambda: psnr(model.texture.detach(), ref, mask=touched)) if ref is not None and d.main else None
+        # The demo's mask: texels a bilinear lookup at 4x the frames' resolution reads.
+        seen = seen_texels(difftex.TexturedMesh(difftex.load_mesh(mesh), ref, learn_texture=False).to(dev),
+                           mvp_all[keep], (H, W))
+        score = lambda: psnr(model.texture.detach(), ref, mask=seen)  # noqa: E731
     config = {"mode": "capture", "capture": str(Path(capture).resolve()), "mesh": str(Path(mesh).resolve()),
               "filter": filter, "iters": iters, "batch": batch, "lr": lr, "seed": seed, "tex_size": tex_size,
               "frames": keep}
     run = train(model, batches(), sampler, config, d, out=Path(out), checkpoint_every=checkpoint_every,
-                resume=resume, score=score, touched=touched, progress=progress, desc=f"fit {filter}")
+                resume=resume, score=score, progress=progress, desc=f"fit {filter}")
     if not d.main:
         return {}
 

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from difftex.io.capture import CaptureWarning
+from difftex.testing.meshes import SPOT_TEXTURE
 from experiments.fit import fit_texture, runtime
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -100,13 +101,14 @@ def test_fit_to_capture_skips_frames_that_see_nothing(tmp_path):
     (cap / "transforms.json").write_text(json.dumps(meta))
     mesh = ROOT / "data" / "spot" / "spot_triangulated.obj"
     with pytest.warns(CaptureWarning, match=r"frame 2 \('images/frame_00002.png'\): the camera sees nothing"):
-        m = fit_texture.fit_capture(cap, mesh, iters=8, batch=2, lr=0.1, tex_size=128, workers=1,
-                                    out=tmp_path / "o", progress=False)
-        grey = fit_texture.fit_capture(cap, mesh, iters=0, batch=2, tex_size=128, workers=0, progress=False,
-                                       save=False)
-    print(m["image_psnr"], grey["image_psnr"])
+        m = fit_texture.fit_capture(cap, mesh, iters=8, batch=2, lr=0.1, tex_size=1024, workers=1,
+                                    out=tmp_path / "o", progress=False, reference_texture=SPOT_TEXTURE)
+        grey = fit_texture.fit_capture(cap, mesh, iters=0, batch=2, tex_size=1024, workers=0, progress=False,
+                                       save=False, reference_texture=SPOT_TEXTURE)
+    print(m["image_psnr"], grey["image_psnr"], m["texture_psnr"], grey["texture_psnr"])
     assert m["frames"] == 4 and m["frames_used"] == 3
     assert m["image_psnr"] > grey["image_psnr"] + 3  # the photos' pixels under their alpha
+    assert m["texture_psnr"] > grey["texture_psnr"] + 2
     assert (tmp_path / "o" / "texture.png").stat().st_size > 1000
     for f in meta["frames"]:
         f["transform_matrix"] = away.tolist()
