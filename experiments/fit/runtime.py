@@ -6,6 +6,9 @@ whole texture, draws the same global batch of views per step (one seeded sampler
 of it and scales its loss by ``1 / world`` so that the all-reduced (summed) gradient is the one-process mean;
 the identical Adam step then keeps every copy equal. An explicit all-reduce rather than DDP: the parameters are
 one or two big tensors, so DDP's bucketing buys nothing, and the loop stays one code path for 1 and N processes.
+Several machines: ``torchrun --nnodes M --nproc-per-node N --rdzv-backend c10d --rdzv-endpoint HOST:PORT ...``
+on each; a CUDA process uses ``cuda:LOCAL_RANK``. Only rank 0 writes, so ``--out`` must be on its machine (and
+``--resume`` needs the checkpoint where every process can read it, e.g. a shared folder).
 
 Checkpoints (:func:`save_checkpoint`) go to a temporary file in the same folder, are fsynced and renamed over
 the previous one (``os.replace`` is atomic on POSIX and Windows), then the folder is fsynced so that the rename
