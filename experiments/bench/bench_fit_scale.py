@@ -81,7 +81,7 @@ def main() -> None:
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        if args.procs is not None:
+        if args.procs:  # `--procs` with no numbers: memory only
             print(f"| processes | threads each | steps/s | texture PSNR (dB) | all-reduce MiB/step |\n|---|---|---|---|---|")
             for r in speed(args.procs, args.iters, args.res, args.views, args.batch, args.threads, tmp):
                 print(f"| {r['processes']} | {r['threads_each']} | {r['steps_per_second']:.2f} | "
