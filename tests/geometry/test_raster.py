@@ -153,8 +153,6 @@ def _grid_mesh(n: int, lo: float, hi: float, dtype: torch.dtype, w: torch.Tensor
     return pos.to(dtype), faces
 
 
-@pytest.mark.xfail(strict=True, reason="known defect: the float edge test is not exact where several edges "
-                   "meet at a pixel centre (holes / double coverage); see the issue 6 note of 2026-11-24")
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_vertices_on_non_dyadic_pixel_centres_leave_no_holes(dtype):
     # A screen-covering grid whose vertices land on pixel centres only up to
