@@ -12,6 +12,7 @@ from . import envmap, io, mapping, metrics
 from .backend import backend
 from .envmap import cube_to_direction, direction_to_cube, direction_to_equirect_uv, equirect_uv_to_direction
 from .geometry import Fragments, Mesh, camera, interpolate, rasterize
+from .geometry import depth_peel
 from .io import load_mesh, load_texture, save_image
 from .mapping import (box_uv, cylindrical_uv, normal_uv, planar_uv, spherical_uv, texture_matrix,
                       uv_transform)
@@ -25,3 +26,4 @@ __all__ = [
     "equirect_uv_to_direction", "interpolate", "levels_needed", "load_mesh", "load_texture", "lod", "mipmap",
     "normal_uv", "planar_uv", "rasterize", "sample", "save_image", "spherical_uv", "texture_matrix", "uv_transform",
 ]
+__all__ += ["depth_peel"]

@@ -126,6 +126,7 @@ PUBLIC = {
     # added with the subpackages
     "backend", "envmap", "metrics", "equirect_uv_to_direction", "cube_to_direction",
 }
+PUBLIC |= {"depth_peel"}  # issue 16
 
 
 def test_public_names_are_kept():

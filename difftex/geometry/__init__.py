@@ -2,6 +2,6 @@
 from . import camera
 from .interpolate import interpolate
 from .mesh import Mesh
-from .raster import Fragments, rasterize
+from .raster import Fragments, depth_peel, rasterize
 
-__all__ = ["camera", "interpolate", "Mesh", "Fragments", "rasterize"]
+__all__ = ["camera", "interpolate", "Mesh", "Fragments", "rasterize", "depth_peel"]
