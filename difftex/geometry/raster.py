@@ -1,19 +1,41 @@
 """Z-buffer rasterizer with differentiable perspective-correct barycentrics.
 
-The rasterizer works in 2D homogeneous coordinates (Olano & Greer, "Triangle
-scan conversion using 2D homogeneous coordinates", 1997): with clip-space
-vertices ``h_i = (X_i, Y_i, W_i)`` and a pixel ``p = (x, y, 1)`` in NDC, the
-edge functions ``e_i = (h_j x h_k) . p`` are proportional to the
-perspective-correct barycentrics of the point of the triangle's plane that
-projects onto ``p``. All three have the sign of ``det[h_0 h_1 h_2]`` exactly
-when that point lies inside the triangle *and* in front of the eye (w > 0),
-so triangles crossing w = 0 need no clipping and no pixel gets a wrong id.
-NDC depth ``z = sum_i e_i Z_i / det`` is affine in screen space; fragments
-outside ``-1 <= z <= 1`` are dropped, which clips at the near and far planes
-exactly.
+Visibility (which triangle owns a pixel centre) is exact by construction for
+every triangle whose corners are in front of the eye (w > 0) and project
+within the guard band (+-2**13 pixels at 16 sub-pixel bits): the projected
+corners are snapped to a fixed-point grid of 2**-16 pixel
+(``SUBPIXEL_BITS``; fewer above 4096 pixels), the three edge functions of a
+pixel centre are evaluated exactly in int64, and a centre exactly on an edge
+goes by a top-left rule (to the triangle it enters when nudged by (d, d^2),
+d -> 0+). Each centre is then inside exactly one triangle of any closed fan
+or strip, also where several edges meet at it: a closed mesh leaves no hole
+and covers no centre twice per surface layer.
 
-Visibility (which triangle owns a pixel) is discrete and computed without
-autograd; the barycentrics, their screen-space derivatives and the depth of
+Triangles reaching behind the eye (a corner with w <= 0) or far off screen
+take the float64 2D homogeneous path (Olano & Greer, "Triangle scan
+conversion using 2D homogeneous coordinates", 1997): with clip-space
+vertices ``h_i = (X_i, Y_i, W_i)`` and a pixel ``p = (x, y, 1)`` in NDC, the
+edge functions ``e_i = (h_j x h_k) . p`` all have the sign of
+``det[h_0 h_1 h_2]`` exactly when the point of the triangle's plane that
+projects onto ``p`` lies inside the triangle *and* in front of the eye, so
+no clipping is needed. Shared edges get bit-for-bit opposite coefficients
+(consistent), but where several edges meet at a centre rounding may leave a
+hole or a double there (such meshes are rare: a floor running behind the
+camera).
+
+The depth test compares the float64 NDC z of the unsnapped triangle's plane
+at the pixel centre (whatever the input dtype), so a back face does not win
+over the front triangle near a silhouette; fragments outside
+``-1 <= z <= 1`` are dropped, which clips at the near and far planes
+exactly; equal depths go to the lowest triangle id.
+
+On the CPU the visibility pass runs in the native kernel
+(``difftex/texture/native/csrc/raster.cpp``) where ``difftex.backend``
+sends it, with the same rules and the same floating-point operations, so
+both give identical ids; the torch path here is the reference and serves
+CUDA, ``difftex.backend("reference")`` and ``DIFFTEX_NATIVE=0``.
+
+Visibility is discrete and computed without autograd; the barycentrics, their screen-space derivatives and the depth of
 the winning triangle are then recomputed from ``pos`` with differentiable
 torch ops.
 
@@ -733,13 +755,18 @@ def rasterize(
         analytic screen-space derivatives bary_dx, bary_dy [B, H, W, 3] per
         pixel column / row.
 
-    Visibility: the nearest fragment (smallest NDC z, compared at float32
-    precision) wins, equal depths go to the lowest triangle id. Pixel
-    centres exactly on an edge follow a top-left style fill rule, so a
-    closed mesh covers each pixel exactly once per surface layer.
-    Triangles crossing w = 0 or the near / far planes are handled exactly
-    (2D homogeneous rasterization plus a per-pixel depth range test);
-    triangles wholly outside the view volume are culled early.
+    Visibility: the nearest fragment (smallest NDC z, compared in float64
+    whatever the input dtype) wins, equal depths go to the lowest triangle
+    id. Coverage uses corners snapped to 2**-16 pixel and exact integer edge
+    functions with a top-left rule: a closed mesh in front of the camera
+    covers each pixel centre exactly once per surface layer, also where
+    edges meet at the centre (see the module notes for triangles reaching
+    behind the eye, which take a float64 path). Triangles crossing w = 0 or
+    the near / far planes are handled exactly (2D homogeneous rasterization
+    plus a per-pixel depth range test); triangles wholly outside the view
+    volume are culled early. On CPU tensors the native kernel computes the
+    same ids where ``difftex.backend`` chooses it (:func:`depth_peel` peels
+    further layers).
 
     ``bary``, ``depth``, ``bary_dx`` and ``bary_dy`` are differentiable with
     respect to ``pos`` (the perspective-correct formula); which triangle is
