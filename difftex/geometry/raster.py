@@ -729,6 +729,37 @@ def _bary_at(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, T
     return bary, depth, dx, dy
 
 
+class _NativeBary(torch.autograd.Function):
+    """:func:`_bary_at` with the forward in the native kernel; the backward differentiates the torch formula."""
+
+    @staticmethod
+    def forward(ctx, v: Tensor, x: Tensor, y: Tensor, W: int, H: int, mod) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        ctx.save_for_backward(v, x, y)
+        ctx.W, ctx.H = W, H
+        return tuple(mod.raster_bary(v.detach(), x, y, H, W))
+
+    @staticmethod
+    def backward(ctx, *grads: Tensor):
+        v, x, y = ctx.saved_tensors
+        # Recomputed from v itself: under create_graph the gradient stays
+        # differentiable (double backward through the torch formula).
+        with torch.enable_grad():
+            vv = v if torch.is_grad_enabled() and v.requires_grad else v.detach().requires_grad_(True)
+            outs = _bary_at(vv, x, y, ctx.W, ctx.H)
+            (g,) = torch.autograd.grad(outs, (vv,), grads, create_graph=torch.is_grad_enabled() and v.requires_grad)
+        return g, None, None, None, None, None
+
+
+def _bary(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`_bary_at`, its forward in the native kernel where ``difftex.backend`` sends CPU tensors."""
+    from ..texture import native
+
+    mod = native.kernel(v)
+    if mod is None:
+        return _bary_at(v, x, y, W, H)
+    return _NativeBary.apply(v, x, y, W, H, mod)
+
+
 def rasterize(
     pos: Tensor,
     faces: Tensor,
@@ -851,7 +882,7 @@ def _fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
     # One flat gather (much faster than 2-index advanced indexing on CPU).
     vid = (bi * pos.shape[1])[:, None] + faces[f]
     v = pos.reshape(-1, 4).index_select(0, vid.reshape(-1)).view(-1, 3, 4)  # [N, 3, 4]
-    bary_c, depth_c, dx_c, dy_c = _bary_at(v, xs[col], ys[r], W, H)
+    bary_c, depth_c, dx_c, dy_c = _bary(v, xs[col], ys[r], W, H)
 
     # Separate dense outputs (not views of one packed tensor): the backward
     # of a view would allocate a zero gradient of the whole packed buffer.

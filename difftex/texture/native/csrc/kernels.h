@@ -69,5 +69,9 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
 std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor faces, int64_t H, int64_t W,
                                                 bool cull, int64_t bits, torch::Tensor floor_z,
                                                 torch::Tensor floor_id, bool count);
+// raster.cpp: rasterize's barycentric pass, forward (geometry/raster.py _bary_at).
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> raster_bary(torch::Tensor v, torch::Tensor x,
+                                                                                     torch::Tensor y, int64_t H,
+                                                                                     int64_t W);
 
 }  // namespace difftex

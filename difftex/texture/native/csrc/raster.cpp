@@ -363,4 +363,74 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
   return {ids, depth};
 }
 
+// rasterize's barycentric pass, forward only (geometry/raster.py _bary_at,
+// the same formulas; its torch ops give the gradients): v [N, 3, 4] the
+// clip-space corners of each covered pixel's triangle, x, y [N] its NDC
+// centre -> bary [N, 3], depth [N], d(bary)/d(column) [N, 3],
+// d(bary)/d(row) [N, 3], zeros where degenerate.
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> raster_bary(torch::Tensor v, torch::Tensor x,
+                                                                                     torch::Tensor y, int64_t H,
+                                                                                     int64_t W) {
+  TORCH_CHECK(v.device().is_cpu() && v.dim() == 3 && v.size(1) == 3 && v.size(2) == 4 &&
+                  x.scalar_type() == v.scalar_type() && y.scalar_type() == v.scalar_type(),
+              "raster_bary: expected v [N, 3, 4] and x, y [N] of one float dtype on the CPU");
+  v = v.contiguous();
+  x = x.contiguous();
+  y = y.contiguous();
+  const int64_t N = v.size(0);
+  auto bary = torch::empty({N, 3}, v.options()), depth = torch::empty({N}, v.options());
+  auto dx = torch::empty({N, 3}, v.options()), dy = torch::empty({N, 3}, v.options());
+  AT_DISPATCH_FLOATING_TYPES(v.scalar_type(), "raster_bary", [&] {
+    using T = scalar_t;
+    const T* pv = v.data_ptr<T>();
+    const T *px = x.data_ptr<T>(), *py = y.data_ptr<T>();
+    T *pb = bary.data_ptr<T>(), *pd = depth.data_ptr<T>(), *pdx = dx.data_ptr<T>(), *pdy = dy.data_ptr<T>();
+    const T sx = T(2.0 / double(W)), sy = T(-2.0 / double(H));
+    at::parallel_for(0, N, 4096, [&](int64_t lo, int64_t hi) {
+      for (int64_t n = lo; n < hi; ++n) {
+        const T* c = pv + 12 * n;
+        T m = 0;
+        for (int i = 0; i < 12; ++i) m = std::max(m, std::abs(c[i]));
+        int ex = 0;
+        std::frexp(m, &ex);
+        const T sc = std::ldexp(T(1), -ex);
+        T X[3], Y[3], Z[3], Wc[3];
+        for (int i = 0; i < 3; ++i) {
+          X[i] = c[4 * i] * sc;
+          Y[i] = c[4 * i + 1] * sc;
+          Z[i] = c[4 * i + 2] * sc;
+          Wc[i] = c[4 * i + 3] * sc;
+        }
+        T a[3], b[3], e[3];
+        for (int i = 0; i < 3; ++i) {
+          const int j = (i + 1) % 3, k = (i + 2) % 3;
+          a[i] = Y[j] * Wc[k] - Wc[j] * Y[k];
+          b[i] = Wc[j] * X[k] - X[j] * Wc[k];
+          const T cc = X[j] * Y[k] - Y[j] * X[k];
+          e[i] = a[i] * px[n] + b[i] * py[n] + cc;
+        }
+        const T s = e[0] + e[1] + e[2];
+        T* ob = pb + 3 * n;
+        T* odx = pdx + 3 * n;
+        T* ody = pdy + 3 * n;
+        if (s == 0) {
+          for (int i = 0; i < 3; ++i) ob[i] = odx[i] = ody[i] = 0;
+          pd[n] = 0;
+          continue;
+        }
+        const T sa = a[0] + a[1] + a[2], sb = b[0] + b[1] + b[2];
+        for (int i = 0; i < 3; ++i) {
+          ob[i] = e[i] / s;
+          odx[i] = (a[i] - ob[i] * sa) / s * sx;
+          ody[i] = (b[i] - ob[i] * sb) / s * sy;
+        }
+        const T zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
+        const T wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
+        pd[n] = wn != 0 ? zn / wn : T(0);
+      }
+    });
+  });
+  return {bary, depth, dx, dy};
+}
+
 }  // namespace difftex
