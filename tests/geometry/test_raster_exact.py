@@ -263,3 +263,44 @@ def test_depth_peel_bad_layers():
     with pytest.raises(ValueError, match="resolution"):
         depth_peel(pos, faces, (0, 4), 2)
     assert difftex.depth_peel is depth_peel
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_native_barycentrics_and_gradients_match_torch_path(dtype):
+    # The native forward of the barycentric pass against the torch formula,
+    # and the gradients (the torch formula's, differentiated) to pos.
+    pos, F = _mixed_scene()
+    pos = pos.to(dtype)
+    H, W = 33, 47
+    res = {}
+    for impl in IMPLS:
+        p = pos.clone().requires_grad_(True)
+        with use_backend(impl):
+            fr = rasterize(p, F, (H, W))
+            val = difftex.interpolate(p[:, :2].square(), F, fr, derivatives=True)
+        loss = sum((t * torch.linspace(0.5, 1.5, t.numel(), dtype=dtype).view(t.shape)).sum()
+                   for t in (fr.bary, fr.depth, fr.bary_dx, fr.bary_dy, *val))
+        loss.backward()
+        res[impl] = (fr, p.grad)
+    (a, ga), (b, gb) = res["native"], res["reference"]
+    assert torch.equal(a.tri_id, b.tri_id)
+    tol = dict(atol=1e-5, rtol=1e-5) if dtype == torch.float32 else dict(atol=1e-12, rtol=1e-12)
+    for name in ("bary", "depth", "bary_dx", "bary_dy"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), **tol)
+    torch.testing.assert_close(ga, gb, **tol)
+    assert ga.abs().sum() > 0
+
+
+@pytest.mark.parametrize("impl", IMPLS)
+def test_second_order_gradients_through_the_barycentric_pass(impl):
+    pos = torch.tensor([[-0.7, -0.6, 0.1, 1.0], [0.8, -0.5, 0.3, 1.2], [0.1, 0.7, -0.2, 0.9]], dtype=torch.float64)
+    faces = torch.tensor([[0, 1, 2]])
+    with use_backend(impl):
+        m = rasterize(pos, faces, (6, 6)).bary.min(-1).values > 0.05
+        assert m.sum() >= 4
+
+        def fn(p):
+            fr = rasterize(p, faces, (6, 6))
+            return fr.bary[m], fr.depth[m], fr.bary_dx[m]
+
+        assert torch.autograd.gradgradcheck(fn, (pos.clone().requires_grad_(True),), eps=1e-6, atol=1e-5, rtol=1e-4)
