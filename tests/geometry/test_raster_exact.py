@@ -304,3 +304,13 @@ def test_second_order_gradients_through_the_barycentric_pass(impl):
             return fr.bary[m], fr.depth[m], fr.bary_dx[m]
 
         assert torch.autograd.gradgradcheck(fn, (pos.clone().requires_grad_(True),), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_subpixel_bits_and_ray_cast_checks():
+    from difftex.geometry.raster import _subpixel_bits
+
+    # 16 bits up to 4096 pixels a side, then fewer so that pixel centres stay within 2**27 units, none past 2**28.
+    assert [_subpixel_bits(1, n) for n in (1, 4096, 4097, 8192, 2**27, 2**28 + 1)] == [16, 16, 15, 15, 1, 0]
+    pos = torch.tensor([[0.0, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, -1.0], [0.0, 1.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match="ray_cast: every vertex needs w > 0"):
+        ray_cast(pos, torch.tensor([[0, 1, 2]]), (4, 4))
