@@ -140,6 +140,17 @@ def test_native_kernel_matches_torch_path(dtype, cull):
     ids = out["native"][0]
     assert (ids >= len(F) - 30).sum() == 0  # duplicates lose every tie to the lower id
     assert (ids == 1280).any() or (ids == 1281).any()  # the ground plane (float path) shows
+    # Big triangles (the kernel solves each row's span instead of testing pixels), vertices on centres.
+    V, F = icosphere(1, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(9)
+    big = _snap_to_centres(camera.transform(V, _camera(gen, 1.8, 60.0, W / H)), H, W, 0.5, gen).to(dtype)[None]
+    got = []
+    for impl in IMPLS:
+        with use_backend(impl):
+            got.append((_visibility(big, F, H, W, cull), _coverage_count(big, F, (H, W), cull_backfaces=cull)))
+    assert torch.equal(got[0][0][0], got[1][0][0]) and torch.equal(got[0][0][1], got[1][0][1])
+    assert torch.equal(got[0][1], got[1][1])
+    assert int((got[0][1] > 0).sum()) > H * W // 3
 
 
 # --------------------------------------------------------------------------

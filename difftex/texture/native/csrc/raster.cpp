@@ -334,10 +334,28 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
               int64_t E2 = e.a[2] * qx0 + e.c[2] + e.b[2] * qy;
               const int64_t s0 = e.a[0] * step, s1 = e.a[1] * step, s2 = e.a[2] * step;
               const double dy = e.zy * (ys[r] - e.y0);
-              for (int64_t c = e.c0; c <= e.c1; ++c, E0 += s0, E1 += s1, E2 += s2) {
-                if (E0 >= e.thr[0] && E1 >= e.thr[1] && E2 >= e.thr[2])
-                  frag(r * W + c, (e.z0 + e.zx * (xs[c] - e.x0)) + dy, f);
+              if (e.c1 - e.c0 < 8) {
+                for (int64_t c = e.c0; c <= e.c1; ++c, E0 += s0, E1 += s1, E2 += s2) {
+                  if (E0 >= e.thr[0] && E1 >= e.thr[1] && E2 >= e.thr[2])
+                    frag(r * W + c, (e.z0 + e.zx * (xs[c] - e.x0)) + dy, f);
+                }
+                continue;
               }
+              // Wider boxes: the row's span solved exactly per edge (E is
+              // affine in the column, steps s_k), then no test per pixel.
+              int64_t lo = 0, hi = e.c1 - e.c0;
+              const int64_t Es[3] = {E0, E1, E2}, ss[3] = {s0, s1, s2};
+              for (int k = 0; k < 3 && lo <= hi; ++k) {
+                const int64_t d = Es[k] - e.thr[k];  // inside where d + ss[k] * i >= 0
+                if (ss[k] > 0)
+                  lo = std::max(lo, -floor_div(d, ss[k]));
+                else if (ss[k] < 0)
+                  hi = std::min(hi, floor_div(d, -ss[k]));
+                else if (d < 0)
+                  hi = -1;
+              }
+              for (int64_t c = e.c0 + lo; c <= e.c0 + hi; ++c)
+                frag(r * W + c, (e.z0 + e.zx * (xs[c] - e.x0)) + dy, f);
             }
           } else {
             setup_float(cx, f, fl);
