@@ -58,8 +58,7 @@ def test_closed_mesh_covers_every_centre_once_per_layer(impl, seed, sub, bumps, 
     # surface a generic ray enters as often as it leaves, and the fill rule
     # makes every centre a generic point: front-facing and back-facing
     # coverage counts are equal at every pixel (no hole: a missing fragment
-    # breaks the balance; no double coverage: an extra one does). On a
-    # convex one both are 0 or 1 and the silhouette has no hole.
+    # breaks the balance; no double coverage: an extra one does).
     gen = torch.Generator().manual_seed(seed)
     V, F = icosphere(sub, dtype=torch.float64)
     V = V * (1 + bumps * torch.rand(len(V), 1, generator=gen, dtype=torch.float64))
@@ -72,8 +71,7 @@ def test_closed_mesh_covers_every_centre_once_per_layer(impl, seed, sub, bumps, 
     back = both - front
     assert torch.equal(front, back), f"{int((front != back).sum())} unbalanced pixels"
     assert front.sum() > 10
-    if bumps == 0.0:
-        assert int(front.max()) == 1
+    # (No "at most once" even for bumps = 0: moving vertices onto centres can fold a coarse sphere over itself.)
     # The z-buffer shows a triangle exactly where something covers the centre.
     assert torch.equal(ids >= 0, front > 0)
 
