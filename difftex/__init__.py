@@ -14,7 +14,7 @@ from . import envmap, io, mapping, metrics
 from .backend import backend
 from .envmap import cube_to_direction, direction_to_cube, direction_to_equirect_uv, equirect_uv_to_direction
 from .geometry import Fragments, Mesh, camera, interpolate, rasterize
-from .geometry import antialias, composite, painter
+from .geometry import antialias, composite, depth_peel, painter
 from .io import load_mesh, load_texture, save_image
 from .mapping import (box_uv, cylindrical_uv, normal_uv, planar_uv, spherical_uv, texture_matrix,
                       uv_transform)
@@ -35,5 +35,5 @@ __all__ = [
     # shading (issue 17)
     "shading", "blinn_phong", "bump", "combine", "displace", "normal_map", "tangent_frames",
     # visibility (issue 16)
-    "antialias", "composite", "painter",
+    "antialias", "composite", "depth_peel", "painter",
 ]

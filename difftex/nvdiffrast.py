@@ -51,7 +51,8 @@ from torch import Tensor
 
 from ._checks import check_float, check_same, describe
 from .envmap.cube import CubeMipmap, cubemap
-from .geometry.raster import Fragments, rasterize as _rasterize
+from .geometry.antialias import antialias as _antialias
+from .geometry.raster import Fragments, peel, rasterize as _rasterize
 from .texture.options import MAX_ANISO, check_number
 from .texture.pyramid.mipmap import Mipmap, mipmap
 from .texture.sample import sample
@@ -199,8 +200,10 @@ def _check_resolution(resolution: object) -> tuple[int, int]:
 
 
 def _raster_layers(glctx: object, pos: object, tri: object, resolution: object, ranges: object,
-                   peel: Optional[Any] = None) -> tuple[list[tuple[Fragments, int]], bool]:
-    """difftex fragments per minibatch piece (instanced: one piece; range mode: one per range)."""
+                   lazy: bool = False) -> tuple[list[tuple[Any, int]], bool]:
+    """difftex fragments per minibatch piece (instanced: one piece; range mode: one per range), each with its
+    triangle-id offset; with ``lazy`` an iterator of depth layers per piece in place of the fragments."""
+    raster = peel if lazy else _rasterize
     ctx = _check_ctx(glctx)
     pos = _check_pos("pos", pos, (2, 3), "[num_vertices, 4] (range mode) or [minibatch_size, num_vertices, 4]")
     if pos.shape[-1] != 4:
@@ -208,7 +211,7 @@ def _raster_layers(glctx: object, pos: object, tri: object, resolution: object, 
     faces = _check_tri(tri, pos.shape[-2], pos.device)
     hw = _check_resolution(resolution)
     if pos.dim() == 3:
-        return [(_rasterize(pos, faces, hw), 0)], ctx.output_db
+        return [(raster(pos, faces, hw), 0)], ctx.output_db
     if ranges is None:
         raise ValueError("ranges: required in range mode (pos [num_vertices, 4]): expected an int32 CPU tensor "
                          "[minibatch_size, 2] of (start, count), got None")
@@ -221,7 +224,7 @@ def _raster_layers(glctx: object, pos: object, tri: object, resolution: object, 
         if start < 0 or count < 0 or start + count > faces.shape[0]:
             raise ValueError(f"ranges: range (start {start}, count {count}) lies outside tri's "
                              f"{faces.shape[0]} triangles")
-        pieces.append((_rasterize(pos, faces[start:start + count], hw), start))
+        pieces.append((raster(pos, faces[start:start + count], hw), start))
     return pieces, ctx.output_db
 
 
@@ -265,48 +268,39 @@ def rasterize(glctx: RasterizeCudaContext, pos: Tensor, tri: Tensor, resolution:
 class DepthPeeler:
     """Depth peeling (nvdiffrast's ``DepthPeeler``): a context manager whose
     :meth:`rasterize_next_layer` returns the nearest, then the next nearest,
-    ... surface per pixel. Arguments as :func:`rasterize`.
+    ... surface per pixel. Arguments as :func:`rasterize`; the first layer
+    equals :func:`rasterize`'s output and each further layer costs about one
+    rasterization (:func:`difftex.geometry.peel`).
+
+    One difference: nvdiffrast culls every surface point at the same or a
+    closer depth than the layers already reported, so of two exactly
+    coplanar triangles it reports one; difftex reports both, one per layer,
+    lowest triangle id first.
     """
 
     def __init__(self, glctx: RasterizeCudaContext, pos: Tensor, tri: Tensor, resolution: Sequence[int],
                  ranges: Optional[Tensor] = None, grad_db: bool = True):
-        _check_ctx(glctx)
         self._args = (glctx, pos, tri, resolution, ranges)
         self._grad_db = grad_db
-        self._layer = 0
-        self._active = False
+        self._layers: Optional[list] = None
 
     def __enter__(self) -> "DepthPeeler":
-        self._active = True
-        self._layer = 0
+        glctx, pos, tri, resolution, ranges = self._args
+        pieces, self._output_db = _raster_layers(glctx, pos, tri, resolution, ranges, lazy=True)
+        self._layers = pieces
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._active = False
+        self._layers = None
 
     def rasterize_next_layer(self) -> tuple[Tensor, Tensor]:
-        """The next depth layer as ``(rast, rast_db)`` like :func:`rasterize`; empty (all zero) past the last one.
+        """The next depth layer as ``(rast, rast_db)`` like :func:`rasterize`; all zero past the last one.
 
         Raises RuntimeError outside the ``with`` block.
         """
-        if not self._active:
+        if self._layers is None:
             raise RuntimeError("DepthPeeler.rasterize_next_layer: call it inside `with DepthPeeler(...) as peeler:`")
-        from .geometry import depth_peel  # lands with the visibility issue
-
-        glctx, pos, tri, resolution, ranges = self._args
-        k = self._layer
-        self._layer += 1
-        if k == 0:
-            return rasterize(glctx, pos, tri, resolution, ranges, self._grad_db)
-        ctx = _check_ctx(glctx)
-        pos_t = _check_pos("pos", pos, (2, 3), "[num_vertices, 4] or [minibatch_size, num_vertices, 4]")
-        faces = _check_tri(tri, pos_t.shape[-2], pos_t.device)
-        hw = _check_resolution(resolution)
-        if pos_t.dim() == 3:
-            pieces = [(depth_peel(pos_t, faces, hw, k + 1)[k], 0)]
-        else:
-            pieces = [(depth_peel(pos_t, faces[s:s + c], hw, k + 1)[k], s) for s, c in ranges.tolist()]
-        return _join(pieces, ctx.output_db, self._grad_db)
+        return _join([(next(layers), off) for layers, off in self._layers], self._output_db, self._grad_db)
 
 
 # --------------------------------------------------------------------------
@@ -652,8 +646,6 @@ def antialias(color: Tensor, rast: Tensor, pos: Tensor, tri: Tensor, topology_ha
     Returns:
         [minibatch_size, height, width, C]; differentiable w.r.t. color and pos.
     """
-    from .geometry import antialias as _antialias  # lands with the visibility issue
-
     color = _check_pos("color", color, 4, "[minibatch_size, height, width, num_channels]")
     rast = _check_rast(rast)
     pos = _check_pos("pos", pos, (2, 3), "[minibatch_size, num_vertices, 4]")

@@ -130,7 +130,7 @@ PUBLIC = {
     # shading (issue 17)
     "shading", "blinn_phong", "bump", "combine", "displace", "normal_map", "tangent_frames",
     # visibility (issue 16)
-    "antialias", "composite", "painter",
+    "antialias", "composite", "depth_peel", "painter",
 }
 
 

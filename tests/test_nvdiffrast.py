@@ -362,3 +362,28 @@ def test_antialias_matches_difftex_and_passes_position_gradients():
     boosted = pos.clone().requires_grad_()
     (dr.antialias(color, rast, boosted, tri, pos_gradient_boost=3.0) * w).sum().backward()
     torch.testing.assert_close(boosted.grad, 3 * q.grad, atol=1e-5, rtol=1e-4)
+
+
+def test_depth_peeler_layers_match_depth_peel():
+    pos, tri, _ = _scene(B=2, subdivisions=1)
+    ref = difftex.depth_peel(pos, tri.long(), (24, 24), 3)
+    with dr.DepthPeeler(CTX, pos, tri, (24, 24)) as peeler:
+        layers = [peeler.rasterize_next_layer() for _ in range(4)]
+    first, _ = dr.rasterize(CTX, pos, tri, (24, 24))
+    assert torch.equal(layers[0][0], first)
+    for (rast, db), frags in zip(layers, ref):
+        r = rast.flip(1)
+        assert torch.equal(r[..., 3], torch.where(frags.tri_id >= 0, frags.tri_id + 1, 0).float())
+        assert torch.equal(r[..., :2], frags.bary[..., :2])
+    assert (layers[1][0][..., 3] > 0).sum() > 0.5 * (layers[0][0][..., 3] > 0).sum()  # a sphere: back faces
+    assert layers[3][0].abs().sum() == 0  # a closed convex mesh has two layers
+    with pytest.raises(RuntimeError, match="inside `with DepthPeeler"):
+        peeler.rasterize_next_layer()
+    # Range mode peels each range on its own and offsets its ids.
+    half = tri.shape[0] // 2
+    ranges = torch.tensor([[0, half], [half, tri.shape[0] - half]], dtype=torch.int32)
+    with dr.DepthPeeler(CTX, pos[0], tri, (24, 24), ranges=ranges) as peeler:
+        peeler.rasterize_next_layer()
+        second, _ = peeler.rasterize_next_layer()
+    one = difftex.depth_peel(pos[:1], tri[half:].long(), (24, 24), 2)[1]
+    assert torch.equal(second[1].flip(0)[..., 3], torch.where(one.tri_id[0] >= 0, one.tri_id[0] + 1 + half, 0).float())

@@ -1,19 +1,41 @@
 """Z-buffer rasterizer with differentiable perspective-correct barycentrics.
 
-The rasterizer works in 2D homogeneous coordinates (Olano & Greer, "Triangle
-scan conversion using 2D homogeneous coordinates", 1997): with clip-space
-vertices ``h_i = (X_i, Y_i, W_i)`` and a pixel ``p = (x, y, 1)`` in NDC, the
-edge functions ``e_i = (h_j x h_k) . p`` are proportional to the
-perspective-correct barycentrics of the point of the triangle's plane that
-projects onto ``p``. All three have the sign of ``det[h_0 h_1 h_2]`` exactly
-when that point lies inside the triangle *and* in front of the eye (w > 0),
-so triangles crossing w = 0 need no clipping and no pixel gets a wrong id.
-NDC depth ``z = sum_i e_i Z_i / det`` is affine in screen space; fragments
-outside ``-1 <= z <= 1`` are dropped, which clips at the near and far planes
-exactly.
+Visibility (which triangle owns a pixel centre) is exact by construction for
+every triangle whose corners are in front of the eye (w > 0) and project
+within the guard band (+-2**13 pixels at 16 sub-pixel bits): the projected
+corners are snapped to a fixed-point grid of 2**-16 pixel
+(``SUBPIXEL_BITS``; fewer above 4096 pixels), the three edge functions of a
+pixel centre are evaluated exactly in int64, and a centre exactly on an edge
+goes by a top-left rule (to the triangle it enters when nudged by (d, d^2),
+d -> 0+). Each centre is then inside exactly one triangle of any closed fan
+or strip, also where several edges meet at it: a closed mesh leaves no hole
+and covers no centre twice per surface layer.
 
-Visibility (which triangle owns a pixel) is discrete and computed without
-autograd; the barycentrics, their screen-space derivatives and the depth of
+Triangles reaching behind the eye (a corner with w <= 0) or far off screen
+take the float64 2D homogeneous path (Olano & Greer, "Triangle scan
+conversion using 2D homogeneous coordinates", 1997): with clip-space
+vertices ``h_i = (X_i, Y_i, W_i)`` and a pixel ``p = (x, y, 1)`` in NDC, the
+edge functions ``e_i = (h_j x h_k) . p`` all have the sign of
+``det[h_0 h_1 h_2]`` exactly when the point of the triangle's plane that
+projects onto ``p`` lies inside the triangle *and* in front of the eye, so
+no clipping is needed. Shared edges get bit-for-bit opposite coefficients
+(consistent), but where several edges meet at a centre rounding may leave a
+hole or a double there (such meshes are rare: a floor running behind the
+camera).
+
+The depth test compares the float64 NDC z of the unsnapped triangle's plane
+at the pixel centre (whatever the input dtype), so a back face does not win
+over the front triangle near a silhouette; fragments outside
+``-1 <= z <= 1`` are dropped, which clips at the near and far planes
+exactly; equal depths go to the lowest triangle id.
+
+On the CPU the visibility pass runs in the native kernel
+(``difftex/texture/native/csrc/raster.cpp``) where ``difftex.backend``
+sends it, with the same rules and the same floating-point operations, so
+both give identical ids; the torch path here is the reference and serves
+CUDA, ``difftex.backend("reference")`` and ``DIFFTEX_NATIVE=0``.
+
+Visibility is discrete and computed without autograd; the barycentrics, their screen-space derivatives and the depth of
 the winning triangle are then recomputed from ``pos`` with differentiable
 torch ops.
 
@@ -25,6 +47,8 @@ top of the image (NDC y = +1), pixel ``(r, c)`` has its centre at NDC
 
 from __future__ import annotations
 
+import itertools
+
 from dataclasses import dataclass, field
 from typing import Iterator, Optional, Sequence
 
@@ -33,7 +57,7 @@ from torch import Tensor
 
 from .._checks import check_index
 
-__all__ = ["Fragments", "rasterize"]
+__all__ = ["Fragments", "depth_peel", "rasterize"]
 
 # Candidate (triangle, pixel) pairs evaluated per chunk; bounds the memory of
 # the visibility pass at a few hundred MB whatever the mesh or resolution.
@@ -44,7 +68,6 @@ _MAX_BLOCK = 1 << 16
 # Bins with fewer triangles than this are merged into a bigger bin: an extra
 # kernel launch per tiny bin costs more than the wasted candidates.
 _MIN_BIN = 64
-_KEY_EMPTY = torch.iinfo(torch.int64).max
 
 #: Most bytes :func:`rasterize` may allocate for its per-pixel buffers (all
 #: views of the batch together) before it refuses with a ValueError naming the
@@ -188,23 +211,51 @@ def _next_pow2_exp(n: Tensor) -> Tensor:
 # --------------------------------------------------------------------------
 # visibility
 
+#: Sub-pixel bits of the fixed-point grid the exact path snaps projected
+#: vertices to (fewer for images wider or taller than 4096 pixels, see
+#: ``_subpixel_bits``). 16 bits moves an edge by at most 2**-17 pixel: far
+#: below what changes the visible triangle except at pixel centres that sit
+#: on an edge to that precision, where the fill rule decides anyway.
+SUBPIXEL_BITS = 16
+# Fixed-point coordinates of the exact path stay within +-2**29 units (the
+# guard band): edge-function coefficients then stay below 2**31, products
+# and sums below 2**62, exact in int64.
+_GUARD = float(1 << 29)
+_ID_EMPTY = torch.iinfo(torch.int64).max
+
+
+def _subpixel_bits(H: int, W: int) -> int:
+    """Sub-pixel bits of the exact path at this resolution; 0: no exact path (images over 2**27 pixels wide).
+
+    Pixel centres, at odd multiples of 2**(S-1) from the image centre, must
+    stay within 2**27 units: S <= 28 - ceil(log2(max(H, W))).
+    """
+    return max(0, min(SUBPIXEL_BITS, 28 - (max(H, W) - 1).bit_length()))
+
 
 @dataclass
 class _Items:
     """Work items of the visibility pass, sorted by block size.
 
     One item = one triangle (or one band of rows of a big triangle) and the
-    pixel block it tests. ``fdata`` [n, 15] per item: sign-normalised edge
-    functions e_k = a_k x + b_k y + c_k as (a_0..2, b_0..2, c_0..2) (inside:
-    e_k >= thr_k), thr_0..2 (0 where the fill rule owns the edge, else the
-    smallest positive float) and the depth plane (zx, zy, zc). ``idata``
-    [n, 5]: global triangle index b * F + f, first column, first row, width
-    and height of the pixel block in use.
+    pixel block it tests. Exact-path items (``edata`` set): ``edata`` [n, 12]
+    int64, the sign-normalised integer edge functions E_k = a_k qx + b_k qy
+    + c_k of the fixed-point pixel centre (qx, qy), as (a_0..2, b_0..2,
+    c_0..2, thr_0..2) (inside: E_k >= thr_k, thr 0 where the fill rule owns
+    the edge, else 1), and ``fdata`` [n, 5] float64, the NDC depth plane
+    (z0, x0, y0, dz/dx, dz/dy) anchored at the first corner. Float-path items
+    (``edata`` None): ``fdata`` [n, 15] float64, edge functions e_k = a_k x +
+    b_k y + c_k of the NDC pixel centre as (a, b, c, thr (0 or the smallest
+    subnormal)) and the depth plane (zx, zy, zc). ``idata`` [n, 5]: global
+    triangle index b * F + f, first column, first row, width and height of
+    the pixel block in use.
     """
 
     fdata: Tensor
     idata: Tensor
     groups: list[tuple[int, int, int, int]]  # (start, stop, log2 Hs, log2 Ws)
+    edata: Optional[Tensor] = None
+    bits: int = 0
 
 
 def _bbox_clipped(v: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
@@ -236,34 +287,91 @@ def _bbox_clipped(v: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     return xmin, xmax, ymin, ymax, use.any(1)
 
 
-def _prepare(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool) -> _Items | None:
-    """Cull triangles, find their pixel blocks and set up their edge functions."""
-    B, V = pos.shape[0], pos.shape[1]
-    F = faces.shape[0]
-    dtype, device = pos.dtype, pos.device
-    # Per-vertex power-of-two scale: a positive factor on a homogeneous
-    # vertex does not move it, so coverage and depth are unchanged, products
-    # stay exact (watertightness) and huge inputs cannot overflow.
-    pv = pos.reshape(B * V, 4)
-    _, ex = torch.frexp(pv.abs().amax(-1))
-    pv = pv * torch.ldexp(torch.ones_like(ex, dtype=dtype), -ex)[:, None]
-    X, Y, Z, Wc = pv.unbind(-1)
+def _fixed_vertices(pv: Tensor, H: int, W: int, S: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Vertices snapped to the fixed-point grid: (qx, qy int64 [N], ok bool [N]).
 
-    # Early cull with outcodes: all corners beyond the same clip plane (valid
-    # for any sign of w, since the view volume -w <= x, y, z <= w is convex).
-    u8 = torch.uint8
-    code = (
-        (X > Wc).to(u8) | ((X < -Wc).to(u8) << 1) | ((Y > Wc).to(u8) << 2)
-        | ((Y < -Wc).to(u8) << 3) | ((Z > Wc).to(u8) << 4) | ((Z < -Wc).to(u8) << 5)
-    )
-    vid = (torch.arange(B, device=device) * V).view(B, 1, 1) + faces  # [B, F, 3]
-    vid = vid.view(B * F, 3)
-    cv = _rows(code, vid)
-    tri = torch.nonzero((cv[:, 0] & cv[:, 1] & cv[:, 2]) == 0).squeeze(1)
-    if tri.numel() == 0:
+    ``pv`` [N, 4] float64 clip space. qx = round(x_ndc * W * 2**(S-1)) and
+    qy = round(-y_ndc * H * 2**(S-1)): 2**S units a pixel, origin at the image
+    centre, rows growing downwards. ``ok`` where w > 0 and both lie within
+    the guard band (elsewhere qx = qy = 0). The native kernel computes the
+    same values with the same operations (rasterize's two implementations
+    give identical ids).
+    """
+    X, Y, _, Wc = pv.unbind(-1)
+    front = Wc > 0
+    inv = torch.where(front, Wc, torch.ones_like(Wc))
+    fx = (X / inv) * float(W << (S - 1))
+    fy = (Y / inv) * -float(H << (S - 1))
+    ok = front & (fx.abs() <= _GUARD) & (fy.abs() <= _GUARD)
+    zero = torch.zeros_like(fx)
+    qx = torch.round(torch.where(ok, fx, zero)).to(torch.int64)
+    qy = torch.round(torch.where(ok, fy, zero)).to(torch.int64)
+    return qx, qy, ok
+
+
+def _floor_div(a: Tensor, d: int) -> Tensor:
+    return torch.div(a, d, rounding_mode="floor")
+
+
+def _prepare_exact(tri: Tensor, vid: Tensor, pv: Tensor, qx: Tensor, qy: Tensor, H: int, W: int, S: int,
+                   cull_backfaces: bool) -> _Items | None:
+    """Integer edge functions and float64 depth planes of triangles whose corners all snapped."""
+    x, y = _rows(qx, vid), _rows(qy, vid)  # [n, 3]
+    xj, yj, xk, yk = x.roll(-1, 1), y.roll(-1, 1), x.roll(-2, 1), y.roll(-2, 1)
+    # E_i(p) = (yk - yj)(px - xj) - (xk - xj)(py - yj) for edge i (corners
+    # j = i + 1, k = i + 2): positive inside a counter-clockwise (in NDC,
+    # y up) triangle, exact in int64 (|coefficients| < 2**31, |terms| < 2**61).
+    a = yk - yj
+    b = xj - xk
+    c = -(a * xj + b * yj)
+    area = a[:, 0] * x[:, 0] + b[:, 0] * y[:, 0] + c[:, 0]  # E_0 at corner 0: twice the signed area
+    keep = area > 0 if cull_backfaces else area != 0
+    # Depth plane in NDC from the unsnapped corners (all have w > 0 here).
+    v = _rows(pv, vid)
+    nx, ny, nz = v[..., 0] / v[..., 3], v[..., 1] / v[..., 3], v[..., 2] / v[..., 3]
+    dx1, dy1, dz1 = nx[:, 1] - nx[:, 0], ny[:, 1] - ny[:, 0], nz[:, 1] - nz[:, 0]
+    dx2, dy2, dz2 = nx[:, 2] - nx[:, 0], ny[:, 2] - ny[:, 0], nz[:, 2] - nz[:, 0]
+    d = dx1 * dy2 - dx2 * dy1
+    zx = (dz1 * dy2 - dz2 * dy1) / d
+    zy = (dx1 * dz2 - dx2 * dz1) / d
+    keep &= torch.isfinite(zx) & torch.isfinite(zy)  # a float64-degenerate plane covers nothing
+    sgn = torch.sign(area)[:, None]
+    a, b, c = a * sgn, b * sgn, c * sgn
+    # Top-left rule: a centre exactly on an edge belongs to the triangle the
+    # centre would enter if nudged by (d, d^2), d -> 0+ (gradient towards +x,
+    # or +y in row units for a horizontal edge). The nudge is one consistent
+    # perturbation of the point and the arithmetic is exact, so every centre
+    # is inside exactly one triangle of a closed fan or strip: no cracks, no
+    # double coverage, also where several edges meet at the centre.
+    owns = (a > 0) | ((a == 0) & (b > 0))
+    thr = (~owns).to(torch.int64)
+    # Pixel centres covered by the snapped bounding box: centre c is at
+    # (2c + 1 - W) * 2**(S-1).
+    h = 1 << (S - 1)
+    c0 = -_floor_div(-(x.amin(1) + (W - 1) * h), 2 * h)
+    c1 = _floor_div(x.amax(1) + (W - 1) * h, 2 * h)
+    r0 = -_floor_div(-(y.amin(1) + (H - 1) * h), 2 * h)
+    r1 = _floor_div(y.amax(1) + (H - 1) * h, 2 * h)
+    c0, r0 = c0.clamp(min=0), r0.clamp(min=0)
+    c1, r1 = c1.clamp(max=W - 1), r1.clamp(max=H - 1)
+    bw, bh = c1 - c0 + 1, r1 - r0 + 1
+    sel = torch.nonzero(keep & (bw > 0) & (bh > 0)).squeeze(1)
+    if sel.numel() == 0:
         return None
-    vid = _rows(vid, tri)
+    edata = _rows(torch.cat((a, b, c, thr), 1), sel)
+    fdata = _rows(torch.stack((nz[:, 0], nx[:, 0], ny[:, 0], zx, zy), 1), sel)
+    return _blocks(*(_rows(t, sel) for t in (tri, c0, r0, bw, bh)), fdata, edata, S)
 
+
+def _prepare_float(tri: Tensor, vid: Tensor, pv: Tensor, H: int, W: int, cull_backfaces: bool) -> _Items | None:
+    """Float64 homogeneous edge functions (Olano & Greer) of triangles the exact path cannot take.
+
+    Those with a corner at w <= 0 or outside the guard band. Consistent
+    along shared edges (bit-for-bit opposite coefficients), but not exact
+    where several edges meet at a pixel centre.
+    """
+    dtype = pv.dtype
+    X, Y, Z, Wc = pv.unbind(-1)
     # Screen bounding boxes: corners in front of the near plane project
     # directly; triangles reaching behind it take the clipping path.
     front = (Z + Wc >= 0) & (Wc > 0)
@@ -307,17 +415,18 @@ def _prepare(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool) -
         return None
     if sel.numel() < keep.numel():
         tri, a, b, c, Z, det, c0, r0, bw, bh = (_rows(t, sel) for t in (tri, a, b, c, Z, det, c0, r0, bw, bh))
-    # z_ndc = sum_i e_i Z_i / det, affine in NDC (x, y).
+    # z_ndc = sum_i e_i Z_i / det, affine in NDC (x, y); the sums written out
+    # in a fixed order (the native kernel's).
     inv_det = 1 / det
-    zcoef = torch.stack(((a * Z).sum(1) * inv_det, (b * Z).sum(1) * inv_det, (c * Z).sum(1) * inv_det), dim=1)
+
+    def dot(u: Tensor) -> Tensor:
+        return (u[:, 0] * Z[:, 0] + u[:, 1] * Z[:, 1] + u[:, 2] * Z[:, 2]) * inv_det
+
+    zcoef = torch.stack((dot(a), dot(b), dot(c)), dim=1)
     # Orient every edge function so that the inside is e >= 0.
     sgn = torch.sign(det)[:, None]
     a, b, c = a * sgn, b * sgn, c * sgn
-    # Top-left style fill rule: a pixel centre exactly on an edge belongs to
-    # the triangle whose edge gradient (a, b) points towards +x (or +y when
-    # the edge is horizontal), as if the sample were nudged by (d, d^2). Two
-    # triangles sharing an edge have exactly opposite coefficients, so
-    # exactly one of them owns such a pixel: no cracks, no double coverage.
+    # The top-left rule of the exact path, on floats.
     owns = (a > 0) | ((a == 0) & (b > 0))
     # e > 0 is written e >= smallest subnormal so that one comparison per
     # edge serves both cases (torch.set_flush_denormal(True) would turn it
@@ -325,9 +434,16 @@ def _prepare(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool) -
     tiny = torch.finfo(dtype).tiny * torch.finfo(dtype).eps
     thr = torch.where(owns, torch.zeros_like(a), torch.full_like(a, tiny))
     fdata = torch.cat((a, b, c, thr, zcoef), dim=1)  # [n, 15]
+    return _blocks(tri, c0, r0, bw, bh, fdata, None, 0)
 
-    # Blocks: power-of-two width and height covering the bbox; bigger than
-    # _MAX_BLOCK candidates are split into bands of rows.
+
+def _blocks(tri: Tensor, c0: Tensor, r0: Tensor, bw: Tensor, bh: Tensor, fdata: Tensor, edata: Optional[Tensor],
+            bits: int) -> _Items:
+    """Work items: power-of-two pixel blocks covering each bbox, sorted and grouped by size.
+
+    Blocks bigger than _MAX_BLOCK candidates are split into bands of rows.
+    """
+    device = tri.device
     item_tri = torch.arange(len(tri), device=device)
     ew, eh = _next_pow2_exp(bw), _next_pow2_exp(bh)
     big = torch.nonzero(ew + eh > _MAX_BLOCK.bit_length() - 1).squeeze(1)
@@ -353,6 +469,8 @@ def _prepare(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool) -
     idata = _rows(torch.stack((c0, r0, bw, bh), dim=1), order)
     idata = torch.cat((_rows(tri, it)[:, None], idata), dim=1)
     fdata = _rows(fdata, it)
+    if edata is not None:
+        edata = _rows(edata, it)
 
     uniq, counts = torch.unique_consecutive(key, return_counts=True)
     uniq_l, counts_l = uniq.tolist(), counts.tolist()
@@ -368,7 +486,52 @@ def _prepare(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool) -
             continue
         groups.append((start, start + pending, mh, mw))
         start, pending, mw, mh = start + pending, 0, 0, 0
-    return _Items(fdata, idata, groups)
+    return _Items(fdata, idata, groups, edata, bits)
+
+
+def _prepare(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool) -> list[_Items]:
+    """Cull triangles, split them between the exact and the float path, set up their edge functions.
+
+    ``pos`` [B, V, 4] float64.
+    """
+    B, V = pos.shape[0], pos.shape[1]
+    F = faces.shape[0]
+    device = pos.device
+    raw = pos.reshape(B * V, 4)
+    # Per-vertex power-of-two scale for the float path: a positive factor on
+    # a homogeneous vertex does not move it, so coverage and depth are
+    # unchanged, products stay exact (shared edges agree) and huge inputs
+    # cannot overflow.
+    _, ex = torch.frexp(raw.abs().amax(-1))
+    pv = raw * torch.ldexp(torch.ones_like(ex, dtype=raw.dtype), -ex)[:, None]
+    X, Y, Z, Wc = pv.unbind(-1)
+
+    # Early cull with outcodes: all corners beyond the same clip plane (valid
+    # for any sign of w, since the view volume -w <= x, y, z <= w is convex).
+    u8 = torch.uint8
+    code = (
+        (X > Wc).to(u8) | ((X < -Wc).to(u8) << 1) | ((Y > Wc).to(u8) << 2)
+        | ((Y < -Wc).to(u8) << 3) | ((Z > Wc).to(u8) << 4) | ((Z < -Wc).to(u8) << 5)
+    )
+    vid = (torch.arange(B, device=device) * V).view(B, 1, 1) + faces  # [B, F, 3]
+    vid = vid.view(B * F, 3)
+    cv = _rows(code, vid)
+    tri = torch.nonzero((cv[:, 0] & cv[:, 1] & cv[:, 2]) == 0).squeeze(1)
+    if tri.numel() == 0:
+        return []
+    vid = _rows(vid, tri)
+    out: list[_Items | None] = []
+    S = _subpixel_bits(H, W)
+    if S > 0:
+        qx, qy, ok = _fixed_vertices(raw, H, W, S)
+        snapped = _rows(ok, vid).all(1)
+        e = torch.nonzero(snapped).squeeze(1)
+        out.append(_prepare_exact(_rows(tri, e), _rows(vid, e), raw, qx, qy, H, W, S, cull_backfaces))
+        f = torch.nonzero(~snapped).squeeze(1)
+        tri, vid = _rows(tri, f), _rows(vid, f)
+    if tri.numel() > 0:
+        out.append(_prepare_float(tri, vid, pv, H, W, cull_backfaces))
+    return [it for it in out if it is not None]
 
 
 def _fragments(
@@ -376,97 +539,151 @@ def _fragments(
 ) -> Iterator[tuple[Tensor, Tensor, Tensor]]:
     """Yield chunks of covered fragments: (pixel, tri, z), each [m].
 
-    ``pixel`` is the flat index b * H * W + r * W + c, ``tri`` the global
-    triangle index b * F + f, ``z`` the NDC depth. A fragment is covered
-    when the pixel centre is inside the triangle (fill rule applied), in
-    front of the eye and between the near and far planes.
+    ``pos`` [B, V, 4] float64. ``pixel`` is the flat index b * H * W + r * W
+    + c, ``tri`` the global triangle index b * F + f, ``z`` the float64 NDC
+    depth. A fragment is covered when the pixel centre is inside the
+    triangle (fill rule applied), in front of the eye and between the near
+    and far planes.
     """
-    dtype, device = pos.dtype, pos.device
+    device = pos.device
     F = faces.shape[0]
     if F == 0:
         return
-    items = _prepare(pos, faces, H, W, cull_backfaces)
-    if items is None:
-        return
-    nan = torch.tensor([float("nan")], dtype=dtype, device=device)
-    xs = torch.cat((_pixel_centres(W, dtype, device, flip=False), nan))
-    ys = torch.cat((_pixel_centres(H, dtype, device, flip=True), nan))
-    for g0, g1, lh, lw in items.groups:
-        Hs, Ws = 1 << lh, 1 << lw
-        per = max(1, _CHUNK_CANDIDATES >> (lh + lw))
-        j = torch.arange(Ws, device=device)
-        i = torch.arange(Hs, device=device)
-        for s0 in range(g0, g1, per):
-            fd = items.fdata[s0:min(g1, s0 + per)]
-            tri, c0, r0, bw, bh = items.idata[s0:min(g1, s0 + per)].unbind(1)
-            # Columns / rows beyond the bbox read NaN, which fails every test.
-            col = torch.where(j < bw[:, None], c0[:, None] + j, W)  # [n, Ws]
-            row = torch.where(i < bh[:, None], r0[:, None] + i, H)  # [n, Hs]
-            x = _rows(xs, col)
-            y = _rows(ys, row)
-            covered = None
-            for k in range(3):
-                # The same operation order for every triangle, ((a x) + c) + (b y),
-                # so shared edges evaluate to exact negatives of each other.
-                axc = fd[:, k:k + 1] * x + fd[:, 6 + k:7 + k]
-                by = fd[:, 3 + k:4 + k] * y
-                e = axc[:, None, :] + by[:, :, None]
-                inside = e >= fd[:, 9 + k, None, None]
-                covered = inside if covered is None else covered.logical_and_(inside)
-            idx = torch.nonzero(covered.view(-1)).squeeze(1)
-            if idx.numel() == 0:
-                continue
-            t = idx >> (lw + lh)
-            jj = idx & (Ws - 1)
-            ii = (idx >> lw) & (Hs - 1)
-            zc = _rows(fd[:, 12:15], t)
-            xt = torch.take(x, (t << lw) + jj)
-            yt = torch.take(y, (t << lh) + ii)
-            z = zc[:, 0] * xt + zc[:, 2] + zc[:, 1] * yt
-            b = torch.div(tri, F, rounding_mode="floor")
-            base = (b * H + r0) * W + c0
-            pix = _rows(base, t) + ii * W + jj
-            tri = _rows(tri, t)
-            ok = (z >= -1) & (z <= 1)
-            if not bool(ok.all()):
-                pix, tri, z = pix[ok], tri[ok], z[ok]
-            yield pix, tri, z
+    f64 = torch.float64
+    nan = torch.tensor([float("nan")], dtype=f64, device=device)
+    xs = torch.cat((_pixel_centres(W, f64, device, flip=False), nan))
+    ys = torch.cat((_pixel_centres(H, f64, device, flip=True), nan))
+    for items in _prepare(pos, faces, H, W, cull_backfaces):
+        exact = items.edata is not None
+        if exact:
+            h = 1 << (items.bits - 1)
+            # Fixed-point pixel centres, one past the end for the unused
+            # columns / rows of a block (masked out below).
+            qxs = torch.cat(((2 * torch.arange(W, device=device) + 1 - W) * h, torch.zeros(1, dtype=torch.int64,
+                                                                                       device=device)))
+            qys = torch.cat(((2 * torch.arange(H, device=device) + 1 - H) * h, torch.zeros(1, dtype=torch.int64,
+                                                                                       device=device)))
+        for g0, g1, lh, lw in items.groups:
+            Hs, Ws = 1 << lh, 1 << lw
+            per = max(1, _CHUNK_CANDIDATES >> (lh + lw))
+            j = torch.arange(Ws, device=device)
+            i = torch.arange(Hs, device=device)
+            for s0 in range(g0, g1, per):
+                s1 = min(g1, s0 + per)
+                fd = items.fdata[s0:s1]
+                tri, c0, r0, bw, bh = items.idata[s0:s1].unbind(1)
+                # Columns / rows beyond the bbox read index W / H: NaN on the
+                # float path, which fails every test; masked on the exact one.
+                col_ok, row_ok = j < bw[:, None], i < bh[:, None]
+                col = torch.where(col_ok, c0[:, None] + j, W)  # [n, Ws]
+                row = torch.where(row_ok, r0[:, None] + i, H)  # [n, Hs]
+                if exact:
+                    ed = items.edata[s0:s1]
+                    qx, qy = _rows(qxs, col), _rows(qys, row)
+                    covered = row_ok[:, :, None] & col_ok[:, None, :]
+                    for k in range(3):
+                        axc = ed[:, k:k + 1] * qx + ed[:, 6 + k:7 + k]
+                        by = ed[:, 3 + k:4 + k] * qy
+                        covered &= (axc[:, None, :] + by[:, :, None]) >= ed[:, 9 + k, None, None]
+                else:
+                    x, y = _rows(xs, col), _rows(ys, row)
+                    covered = None
+                    for k in range(3):
+                        # The same operation order for every triangle, ((a x) + c) + (b y),
+                        # so shared edges evaluate to exact negatives of each other.
+                        axc = fd[:, k:k + 1] * x + fd[:, 6 + k:7 + k]
+                        by = fd[:, 3 + k:4 + k] * y
+                        e = axc[:, None, :] + by[:, :, None]
+                        inside = e >= fd[:, 9 + k, None, None]
+                        covered = inside if covered is None else covered.logical_and_(inside)
+                idx = torch.nonzero(covered.view(-1)).squeeze(1)
+                if idx.numel() == 0:
+                    continue
+                t = idx >> (lw + lh)
+                jj = idx & (Ws - 1)
+                ii = (idx >> lw) & (Hs - 1)
+                xt = _rows(xs, _rows(c0, t) + jj)
+                yt = _rows(ys, _rows(r0, t) + ii)
+                zd = _rows(fd, t)
+                if exact:  # anchored at corner 0: z0 + zx (x - x0) + zy (y - y0)
+                    z = (zd[:, 0] + zd[:, 3] * (xt - zd[:, 1])) + zd[:, 4] * (yt - zd[:, 2])
+                else:
+                    z = (zd[:, 12] * xt + zd[:, 14]) + zd[:, 13] * yt
+                b = torch.div(tri, F, rounding_mode="floor")
+                base = (b * H + r0) * W + c0
+                pix = _rows(base, t) + ii * W + jj
+                tri = _rows(tri, t)
+                ok = (z >= -1) & (z <= 1)
+                if not bool(ok.all()):
+                    pix, tri, z = pix[ok], tri[ok], z[ok]
+                yield pix, tri, z
 
 
-def _visibility(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool) -> Tensor:
-    """Z-buffer: [B, H, W] int64 id of the nearest covering triangle, -1 if none.
+def _visibility(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool,
+                floor: Optional[tuple[Tensor, Tensor]] = None) -> tuple[Tensor, Tensor]:
+    """Z-buffer: ([B, H, W] int64 id of the nearest covering triangle or -1, [B * H * W] float64 depth).
 
-    The depth test runs on one int64 key per fragment, (float32 bits of
-    z + 1) << 32 | triangle id, reduced with amin per pixel: nearest wins,
-    equal depths go to the lowest triangle id, whatever the processing
-    order (deterministic on CPU and CUDA).
+    Depths are compared in float64, nearest wins, equal depths go to the
+    lowest triangle id, whatever the processing order (deterministic on CPU
+    and CUDA). ``floor`` = (depth [B * H * W] float64, id [B * H * W] int64)
+    keeps only fragments behind it in (depth, id) order: the next layer of
+    depth peeling. The background's depth is +inf. The native kernel serves
+    CPU tensors where ``difftex.backend`` sends them there.
     """
+    from ..texture import native
+
+    pos = pos.detach().to(torch.float64)
     B = pos.shape[0]
+    mod = native.kernel(pos)
+    if mod is not None:
+        empty_z = torch.empty(0, dtype=torch.float64)
+        fz, fid = floor if floor is not None else (empty_z, torch.empty(0, dtype=torch.int64))
+        tri_id, zbuf = mod.raster(pos.contiguous(), faces.contiguous(), H, W, cull_backfaces,
+                                  _subpixel_bits(H, W), fz.contiguous(), fid.contiguous())
+        return tri_id.view(B, H, W), zbuf.view(-1)
     F = faces.shape[0]
-    buf = torch.full((B * H * W,), _KEY_EMPTY, dtype=torch.int64, device=pos.device)
+    zbuf = torch.full((B * H * W,), float("inf"), dtype=torch.float64, device=pos.device)
+    ibuf = torch.full((B * H * W,), _ID_EMPTY, dtype=torch.int64, device=pos.device)
     for pix, tri, z in _fragments(pos, faces, H, W, cull_backfaces):
-        # z + 1 >= 0 on covered fragments, and the IEEE bits of non-negative
-        # floats sort like the floats.
-        zk = (z + 1).to(torch.float32).view(torch.int32).to(torch.int64)
-        key = (zk << 32) | torch.remainder(tri, F)
-        buf.scatter_reduce_(0, pix, key, "amin")
-    tri_id = torch.where(buf == _KEY_EMPTY, -1, buf & 0xFFFFFFFF)
-    return tri_id.view(B, H, W)
+        f = torch.remainder(tri, F)
+        if floor is not None:
+            fz, fid = floor[0][pix], floor[1][pix]
+            behind = (z > fz) | ((z == fz) & (f > fid))
+            pix, f, z = pix[behind], f[behind], z[behind]
+        old = zbuf[pix]
+        zbuf.scatter_reduce_(0, pix, z, "amin")
+        new = zbuf[pix]
+        # A nearer depth voids the pixel's id; then the fragments at the new
+        # minimum (several on a tie) offer theirs, the lowest wins.
+        ibuf.index_fill_(0, pix[new < old], _ID_EMPTY)
+        win = z == new
+        ibuf.scatter_reduce_(0, pix[win], f[win], "amin")
+    tri_id = torch.where(ibuf == _ID_EMPTY, -1, ibuf)
+    return tri_id.view(B, H, W), zbuf
 
 
 def _coverage_count(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cull_backfaces: bool = False) -> Tensor:
-    """[B, H, W] int64 number of triangles covering each pixel centre (no z test).
+    """[B, H, W] int64 number of triangles covering each pixel centre (no z test; near / far planes apply).
 
     A diagnostic for the fill rule (a closed mesh must give counts in {0, 2}
-    without culling, {0, 1} with it); not part of the public API.
+    without culling, {0, 1} with it); not part of the public API. Runs the
+    implementation ``difftex.backend`` chooses, like :func:`rasterize`.
     """
+    from ..texture import native
+
     pos = _check_pos(pos)
     faces = check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
     H, W = _check_resolution(resolution)
     B = pos.shape[0]
+    p64 = pos.detach().to(torch.float64)
+    mod = native.kernel(p64)
+    if mod is not None:
+        count, _ = mod.raster(p64.contiguous(), faces.contiguous(), H, W, cull_backfaces, _subpixel_bits(H, W),
+                              torch.empty(0, dtype=torch.float64), torch.empty(0, dtype=torch.int64), count=True)
+        return count.view(B, H, W)
     count = torch.zeros(B * H * W, dtype=torch.int64, device=pos.device)
     with torch.no_grad():
-        for pix, _, _ in _fragments(pos.detach(), faces, H, W, cull_backfaces):
+        for pix, _, _ in _fragments(p64, faces, H, W, cull_backfaces):
             count.index_add_(0, pix, torch.ones_like(pix))
     return count.view(B, H, W)
 
@@ -514,6 +731,37 @@ def _bary_at(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, T
     return bary, depth, dx, dy
 
 
+class _NativeBary(torch.autograd.Function):
+    """:func:`_bary_at` with the forward in the native kernel; the backward differentiates the torch formula."""
+
+    @staticmethod
+    def forward(ctx, v: Tensor, x: Tensor, y: Tensor, W: int, H: int, mod) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        ctx.save_for_backward(v, x, y)
+        ctx.W, ctx.H = W, H
+        return tuple(mod.raster_bary(v.detach(), x, y, H, W))
+
+    @staticmethod
+    def backward(ctx, *grads: Tensor):
+        v, x, y = ctx.saved_tensors
+        # Recomputed from v itself: under create_graph the gradient stays
+        # differentiable (double backward through the torch formula).
+        with torch.enable_grad():
+            vv = v if torch.is_grad_enabled() and v.requires_grad else v.detach().requires_grad_(True)
+            outs = _bary_at(vv, x, y, ctx.W, ctx.H)
+            (g,) = torch.autograd.grad(outs, (vv,), grads, create_graph=torch.is_grad_enabled() and v.requires_grad)
+        return g, None, None, None, None, None
+
+
+def _bary(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`_bary_at`, its forward in the native kernel where ``difftex.backend`` sends CPU tensors."""
+    from ..texture import native
+
+    mod = native.kernel(v)
+    if mod is None:
+        return _bary_at(v, x, y, W, H)
+    return _NativeBary.apply(v, x, y, W, H, mod)
+
+
 def rasterize(
     pos: Tensor,
     faces: Tensor,
@@ -540,13 +788,18 @@ def rasterize(
         analytic screen-space derivatives bary_dx, bary_dy [B, H, W, 3] per
         pixel column / row.
 
-    Visibility: the nearest fragment (smallest NDC z, compared at float32
-    precision) wins, equal depths go to the lowest triangle id. Pixel
-    centres exactly on an edge follow a top-left style fill rule, so a
-    closed mesh covers each pixel exactly once per surface layer.
-    Triangles crossing w = 0 or the near / far planes are handled exactly
-    (2D homogeneous rasterization plus a per-pixel depth range test);
-    triangles wholly outside the view volume are culled early.
+    Visibility: the nearest fragment (smallest NDC z, compared in float64
+    whatever the input dtype) wins, equal depths go to the lowest triangle
+    id. Coverage uses corners snapped to 2**-16 pixel and exact integer edge
+    functions with a top-left rule: a closed mesh in front of the camera
+    covers each pixel centre exactly once per surface layer, also where
+    edges meet at the centre (see the module notes for triangles reaching
+    behind the eye, which take a float64 path). Triangles crossing w = 0 or
+    the near / far planes are handled exactly (2D homogeneous rasterization
+    plus a per-pixel depth range test); triangles wholly outside the view
+    volume are culled early. On CPU tensors the native kernel computes the
+    same ids where ``difftex.backend`` chooses it (:func:`depth_peel` peels
+    further layers).
 
     ``bary``, ``depth``, ``bary_dx`` and ``bary_dy`` are differentiable with
     respect to ``pos`` (the perspective-correct formula); which triangle is
@@ -558,11 +811,73 @@ def rasterize(
     pos = _check_pos(pos)
     faces = check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
     H, W = _check_resolution(resolution)
-    B = pos.shape[0]
-    _check_memory(B, H, W, pos.dtype)
+    _check_memory(pos.shape[0], H, W, pos.dtype)
     with torch.no_grad():
-        tri_id = _visibility(pos.detach(), faces, H, W, cull_backfaces)
+        tri_id, _ = _visibility(pos, faces, H, W, cull_backfaces)
+    return _fragments_of(pos, faces, tri_id)
 
+
+def depth_peel(
+    pos: Tensor,
+    faces: Tensor,
+    resolution: Sequence[int],
+    layers: int,
+    *,
+    cull_backfaces: bool = False,
+) -> list[Fragments]:
+    """Depth peeling: the first ``layers`` surfaces along every pixel's ray, nearest first.
+
+    Layer 0 is :func:`rasterize`'s output; layer k holds, per pixel, the
+    (k + 1)-th covering fragment in (NDC depth, triangle id) order, so
+    coplanar fragments come one per layer, lowest id first, and no fragment
+    appears twice. Pixels with fewer than k + 1 fragments are background
+    (``tri_id = -1``) in layer k. Each pass keeps the previous layer's float64
+    depth and id per pixel as a floor (the native kernel and the torch path
+    alike); every layer costs about one rasterization.
+
+    Args:
+        pos, faces, resolution, cull_backfaces: as for :func:`rasterize`.
+        layers: number of layers (>= 1).
+
+    Returns:
+        A list of ``layers`` :class:`Fragments`, nearest first; ``bary``,
+        ``depth``, ``bary_dx`` and ``bary_dy`` of each are differentiable with
+        respect to ``pos`` as in :func:`rasterize`.
+
+    Raises what :func:`rasterize` raises, and TypeError / ValueError naming
+    ``layers`` unless it is an int >= 1.
+    """
+    if isinstance(layers, bool) or not isinstance(layers, int):
+        raise TypeError(f"depth_peel: layers must be an int, got {type(layers).__name__}")
+    if layers < 1:
+        raise ValueError(f"depth_peel: layers must be >= 1, got {layers}")
+    return list(itertools.islice(peel(pos, faces, resolution, cull_backfaces=cull_backfaces), layers))
+
+
+def peel(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cull_backfaces: bool = False) -> Iterator[Fragments]:
+    """Depth layers one at a time, nearest first, without end: :func:`depth_peel` as a lazy iterator.
+
+    Each ``next()`` costs about one rasterization (the previous layer's
+    float64 depth and id per pixel are kept as the floor); past the last
+    surface every layer is background. Arguments, gradients and errors as
+    :func:`depth_peel` (the errors are raised at the first ``next()``).
+    """
+    pos = _check_pos(pos)
+    faces = check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
+    H, W = _check_resolution(resolution)
+    _check_memory(pos.shape[0], H, W, pos.dtype)
+    floor = None
+    while True:
+        with torch.no_grad():
+            tri_id, zbuf = _visibility(pos, faces, H, W, cull_backfaces, floor)
+            # Background pixels keep floor (+inf, max id): nothing lies behind it.
+            floor = (zbuf, torch.where(tri_id.reshape(-1) >= 0, tri_id.reshape(-1), _ID_EMPTY))
+        yield _fragments_of(pos, faces, tri_id)
+
+
+def _fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
+    """The differentiable pass: barycentrics, depth and derivatives of the triangles ``tri_id`` [B, H, W] names."""
+    B, H, W = tri_id.shape
     flat = tri_id.reshape(-1)
     idx = torch.nonzero(flat >= 0).squeeze(1)
     f = flat[idx]
@@ -575,7 +890,7 @@ def rasterize(
     # One flat gather (much faster than 2-index advanced indexing on CPU).
     vid = (bi * pos.shape[1])[:, None] + faces[f]
     v = pos.reshape(-1, 4).index_select(0, vid.reshape(-1)).view(-1, 3, 4)  # [N, 3, 4]
-    bary_c, depth_c, dx_c, dy_c = _bary_at(v, xs[col], ys[r], W, H)
+    bary_c, depth_c, dx_c, dy_c = _bary(v, xs[col], ys[r], W, H)
 
     # Separate dense outputs (not views of one packed tensor): the backward
     # of a view would allocate a zero gradient of the whole packed buffer.

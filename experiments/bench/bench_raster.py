@@ -17,6 +17,21 @@ high-water mark is reset just before the call, so loading and other scenes
 do not count), ``torch.cuda.max_memory_allocated`` on CUDA.
 
     python -m experiments.bench.bench_raster [--device cuda] [--reps 5] [--out docs/bench_raster.md]
+
+With ``--peers`` it times instead, on the CPU, ``rasterize`` (native kernel
+and torch path), ``depth_peel`` of 4 layers, and the peers: Mitsuba 3
+(``llvm_ad_rgb``; ``scene.ray_intersect_preliminary`` of one ray through
+every pixel centre, the rays built once as Dr.Jit arrays) with its BVH
+prebuilt, and with the BVH rebuilt every call (vertex positions set again
+and ``params.update()``: a deforming mesh). Scenes: spot at 512^2 and
+1024^2, icosphere(8) at 512^2 (``--small``: spot and icosphere(4) at 128^2,
+a check that it runs). Every function is timed in the same rounds,
+shuffled, with a pause before each call (difftex.testing.timing); it prints
+median and interquartile range, and per-round ratios. The peers need the
+optional ``peers`` extra (``pip install difftex[peers]``); without it they
+are skipped with a message.
+
+    python -m experiments.bench.bench_raster --peers [--small] [--reps 15] [--out docs/bench_raster_peers.md]
 """
 from __future__ import annotations
 
@@ -153,13 +168,194 @@ def run_one(kind: str, param: int, res: int, device: str, reps: int) -> dict:
     }
 
 
+PEER_SCENES = [("spot", 5856, 512), ("spot", 5856, 1024), ("icosphere", 8, 512)]
+PEER_SCENES_SMALL = [("spot", 5856, 128), ("icosphere", 4, 128)]
+
+
+def _view(V):
+    """The benchmark camera (as run_one's) and its clip-space float32 positions."""
+    import torch
+
+    from difftex import camera
+
+    center = (V.min(0).values + V.max(0).values) / 2
+    radius = float((V - center).norm(dim=-1).max())
+    eye = center + radius * torch.tensor([1.2, 0.8, 2.3])
+    mvp = camera.perspective(45.0, 1.0, 0.1 * radius, 10 * radius, degrees=True) @ camera.look_at(eye, center)
+    return mvp, camera.transform(V, mvp)
+
+
+def _mitsuba_peers(V, F, mvp, res: int):
+    """{name: fn} of the Mitsuba ray casts and a function giving its triangle ids, or a message why not."""
+    try:
+        import drjit as dr
+        import mitsuba as mi
+    except ImportError as exc:
+        return None, f"Mitsuba 3 / Dr.Jit not installed ({exc}); pip install difftex[peers]"
+    import numpy as np
+    import torch
+
+    mi.set_variant("llvm_ad_rgb")
+    mesh = mi.Mesh("mesh", vertex_count=V.shape[0], face_count=F.shape[0], has_vertex_normals=False,
+                   has_vertex_texcoords=False)
+    mp = mi.traverse(mesh)
+    verts = mi.Float(V.double().numpy().astype(np.float32).ravel())
+    mp["vertex_positions"] = verts
+    mp["faces"] = mi.UInt32(F.numpy().astype(np.uint32).ravel())
+    mp.update()
+    scene = mi.load_dict({"type": "scene", "mesh": mesh})
+    sp = mi.traverse(scene)
+    key = [k for k in sp.keys() if k.endswith("vertex_positions")][0]
+    # One ray through every pixel centre (row-major, row 0 at the top), from
+    # the near plane to the far plane, as difftex samples them.
+    inv = torch.linalg.inv(mvp.double())
+    xs = (torch.arange(res, dtype=torch.float64) + 0.5) / res * 2 - 1
+    y, x = torch.meshgrid(-xs, xs, indexing="ij")
+    ends = []
+    for z in (-1.0, 1.0):
+        p = torch.stack((x, y, torch.full_like(x, z), torch.ones_like(x)), -1).reshape(-1, 4) @ inv.T
+        ends.append(p[:, :3] / p[:, 3:])
+    d = ends[1] - ends[0]
+    o = mi.Point3f(*[mi.Float(ends[0][:, i].numpy().astype(np.float32)) for i in range(3)])
+    dv = mi.Vector3f(*[mi.Float(d[:, i].numpy().astype(np.float32)) for i in range(3)])
+    dr.eval(o, dv)
+
+    def cast():
+        si = scene.ray_intersect_preliminary(mi.Ray3f(o, dv))
+        dr.eval(si.t, si.prim_index)
+        dr.sync_thread()
+        return si
+
+    def cast_rebuilt():
+        sp[key] = verts
+        sp.update()  # rebuilds the BVH (Embree on llvm) before the cast
+        return cast()
+
+    def ids():
+        si = cast()
+        hit = np.asarray(si.t) < float("inf")
+        out = np.where(hit, np.asarray(si.prim_index).astype(np.int64), -1)
+        return torch.from_numpy(out.reshape(res, res))
+
+    info = f"Mitsuba {mi.__version__} llvm_ad_rgb, Dr.Jit {dr.__version__}"
+    return {"mitsuba (prebuilt BVH)": cast, "mitsuba (BVH rebuilt)": cast_rebuilt, "_ids": ids, "_info": info}, None
+
+
+def run_peers(kind: str, param: int, res: int, reps: int, pause: float) -> dict:
+    import torch
+
+    import difftex
+    from difftex.testing import time_interleaved
+
+    V, F, _ = _mesh(kind, param)
+    mvp, pos = _view(V)
+    H = W = res
+
+    def native():
+        with difftex.backend("auto"):
+            return difftex.rasterize(pos, F, (H, W))
+
+    def torch_path():
+        with difftex.backend("reference"):
+            return difftex.rasterize(pos, F, (H, W))
+
+    def peel4():
+        with difftex.backend("auto"):
+            return difftex.depth_peel(pos, F, (H, W), 4)
+
+    fns = {"rasterize (native)": native, "rasterize (torch)": torch_path, "depth_peel 4 (native)": peel4}
+    peers, why = _mitsuba_peers(V, F, mvp, res)
+    out: dict = {"scene": kind, "param": param, "tris": int(F.shape[0]), "res": res,
+                 "threads": torch.get_num_threads(), "skipped": why}
+    if peers is not None:
+        ids = native().tri_id[0]
+        out["mitsuba_id_agreement"] = float((peers.pop("_ids")() == ids).double().mean())
+        out["peer_info"] = peers.pop("_info")
+        fns.update(peers)
+    names = list(fns)
+    t = time_interleaved([fns[n] for n in names], reps, pause=pause, shuffle=True)
+    out["times"] = {n: {"median": x.median, "iqr": x.spread, "min": x.min} for n, x in zip(names, t)}
+    by = dict(zip(names, t))
+    ratios = {"depth_peel 4 / rasterize": by["depth_peel 4 (native)"].ratio_to(by["rasterize (native)"]),
+              "torch path / native": by["rasterize (torch)"].ratio_to(by["rasterize (native)"])}
+    if peers is not None:
+        ratios["native / mitsuba prebuilt"] = by["rasterize (native)"].ratio_to(by["mitsuba (prebuilt BVH)"])
+        ratios["native / mitsuba rebuilt"] = by["rasterize (native)"].ratio_to(by["mitsuba (BVH rebuilt)"])
+    out["ratios"] = ratios
+    return out
+
+
+def peers_main(args) -> None:
+    rows = []
+    for kind, param, res in (PEER_SCENES_SMALL if args.small else PEER_SCENES):
+        proc = subprocess.run(
+            [sys.executable, "-m", "experiments.bench.bench_raster", "--reps", str(args.reps), "--pause",
+             str(args.pause), "--peer-one", f"{kind},{param},{res}"],
+            capture_output=True, text=True, env=dict(os.environ), cwd=ROOT,
+        )
+        if proc.returncode != 0:
+            print(proc.stderr, file=sys.stderr)
+            raise SystemExit(f"{kind} {param} {res} failed")
+        r = json.loads(proc.stdout.strip().splitlines()[-1])
+        rows.append(r)
+        if r["skipped"]:
+            print(f"peers skipped: {r['skipped']}")
+        name = "spot" if kind == "spot" else f"icosphere({param})"
+        print(f"{name} {r['tris']:,} tris {res}^2:")
+        for n, x in r["times"].items():
+            print(f"  {n:>24}: {x['median']:8.2f} ms (IQR {x['iqr']:.2f}, min {x['min']:.2f})")
+        for n, x in r["ratios"].items():
+            print(f"  {n:>28}: {x:.2f}x")
+        if "mitsuba_id_agreement" in r:
+            print(f"  triangle ids equal to Mitsuba's on {r['mitsuba_id_agreement']:.4%} of pixels")
+    import platform
+
+    lines = [f"CPU ({os.cpu_count()} cores, {platform.machine()}), torch {rows[0]['threads']} threads; "
+             f"{rows[0].get('peer_info', 'peers skipped')}; float32; median (IQR) of {args.reps} shuffled "
+             f"rounds, {args.pause * 1e3:.0f} ms pause before each call; ratios are medians of per-round ratios.",
+             "", "| scene | image | rasterize native ms | torch path ms | depth_peel 4 ms | Mitsuba prebuilt ms | "
+             "Mitsuba rebuilt ms | native / prebuilt | native / rebuilt | peel 4 / 1 |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        t, q = r["times"], r["ratios"]
+
+        def cell(n):
+            return f"{t[n]['median']:.1f} ({t[n]['iqr']:.1f})" if n in t else "-"
+        name = "spot" if r["scene"] == "spot" else f"icosphere({r['param']})"
+        lines.append(f"| {name} ({r['tris']:,}) | {r['res']}^2 | {cell('rasterize (native)')} | "
+                     f"{cell('rasterize (torch)')} | {cell('depth_peel 4 (native)')} | "
+                     f"{cell('mitsuba (prebuilt BVH)')} | {cell('mitsuba (BVH rebuilt)')} | "
+                     f"{q.get('native / mitsuba prebuilt', float('nan')):.2f} | "
+                     f"{q.get('native / mitsuba rebuilt', float('nan')):.2f} | {q['depth_peel 4 / rasterize']:.2f} |")
+    table = "\n".join(lines)
+    print()
+    print(table)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(table + "\n")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--out", default=None, help="write the markdown table here")
     ap.add_argument("--one", default=None, help=argparse.SUPPRESS)  # internal: kind,param,res
+    ap.add_argument("--peers", action="store_true", help="time against Mitsuba 3 (see above)")
+    ap.add_argument("--small", action="store_true", help="with --peers: small scenes only (a check that it runs)")
+    ap.add_argument("--pause", type=float, default=0.05, help="with --peers: seconds slept before each timed call")
+    ap.add_argument("--peer-one", default=None, help=argparse.SUPPRESS)  # internal: kind,param,res
     args = ap.parse_args()
+
+    if args.peer_one:
+        kind, param, res = args.peer_one.split(",")
+        print(json.dumps(run_peers(kind, int(param), int(res), args.reps, args.pause)))
+        return
+    if args.peers:
+        if args.device != "cpu":
+            raise SystemExit("--peers times the CPU (Mitsuba's llvm variant)")
+        peers_main(args)
+        return
 
     if args.one:
         kind, param, res = args.one.split(",")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 
 import numpy as np
 import pytest
@@ -12,7 +13,15 @@ from difftex import camera, rasterize
 from difftex.geometry.raster import _coverage_count
 
 from difftex.testing import icosphere
+from tests.conftest import use_backend
 from tests.geometry.raster_helpers import DEVICES, random_rotation, ray_cast, spot_trimesh, view_matrix
+
+
+@pytest.fixture(autouse=True, params=["native", "reference"])
+def raster_impl(request):
+    """Every test on both implementations: the native CPU kernel and the torch path (the reference, CUDA's)."""
+    with use_backend(request.param):
+        yield request.param
 
 
 def _boundary(ids: np.ndarray) -> np.ndarray:
@@ -30,6 +39,16 @@ def _boundary(ids: np.ndarray) -> np.ndarray:
 # reference: trimesh ray casting on spot
 
 
+@functools.lru_cache(maxsize=None)
+def _spot_reference(azim, elev, H, W):
+    """(mvp, trimesh ids, hit points) of one view, cast once for both implementations."""
+    mesh = spot_trimesh()
+    center = tuple(((mesh.bounds[0] + mesh.bounds[1]) / 2).tolist())
+    eye, view, proj = view_matrix(azim, elev, 2.6, center)
+    mvp = proj @ view
+    return (mvp, *ray_cast(mesh, mvp, H, W))
+
+
 # Four views around the cow (trimesh's rtree ray casting is slowest for
 # views whose rays run diagonally through the mesh's bounding box, so these
 # stay near the axes to keep the suite fast).
@@ -41,12 +60,9 @@ def test_matches_trimesh_ray_casting_on_spot(azim, elev, dtype):
     mesh = spot_trimesh()
     V = torch.tensor(mesh.vertices, dtype=torch.float64)
     F = torch.tensor(mesh.faces, dtype=torch.int64)
-    center = tuple(((mesh.bounds[0] + mesh.bounds[1]) / 2).tolist())
     size = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
     H = W = 128
-    eye, view, proj = view_matrix(azim, elev, 2.6, center)
-    mvp = proj @ view
-    ref_ids, ref_hits = ray_cast(mesh, mvp, H, W)
+    mvp, ref_ids, ref_hits = _spot_reference(azim, elev, H, W)
 
     frags = rasterize(camera.transform(V, mvp).to(dtype), F, (H, W))
     ids = frags.tri_id[0].numpy()
@@ -153,8 +169,6 @@ def _grid_mesh(n: int, lo: float, hi: float, dtype: torch.dtype, w: torch.Tensor
     return pos.to(dtype), faces
 
 
-@pytest.mark.xfail(strict=True, reason="known defect: the float edge test is not exact where several edges "
-                   "meet at a pixel centre (holes / double coverage); see the issue 6 note of 2026-11-24")
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_vertices_on_non_dyadic_pixel_centres_leave_no_holes(dtype):
     # A screen-covering grid whose vertices land on pixel centres only up to

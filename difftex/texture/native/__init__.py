@@ -72,7 +72,9 @@ def load() -> ModuleType | None:
         if not built:
             print("difftex: building the native CPU kernel (first use only, about a minute; "
                   "DIFFTEX_NATIVE=0 skips it)...", file=sys.stderr, flush=True)
-        flags = ["/O2"] if os.name == "nt" else ["-O3"]  # MSVC spells it differently
+        # MSVC spells it differently. No contraction into fused multiply-adds (on by default where the target
+        # has them, e.g. aarch64): the raster kernel must round each product as the torch path does.
+        flags = ["/O2", "/fp:precise"] if os.name == "nt" else ["-O3", "-ffp-contract=off"]
         # at::parallel_for runs serially unless the extension itself is built with OpenMP (as torch is
         # on Linux); elsewhere the kernel stays single-threaded rather than depend on a libomp install.
         omp = ["-fopenmp"] if sys.platform.startswith("linux") else []

@@ -60,4 +60,18 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
              torch::Tensor scale, torch::Tensor D, torch::Tensor grad, int64_t full_h, int64_t full_w,
              const ReadOptions& opts, const EwaNeeds& need);
 
+// raster.cpp: rasterize's visibility pass (geometry/raster.py _visibility).
+// pos [B, V, 4] float64, faces [F, 3] int64; bits: sub-pixel bits of the
+// exact path (0: float path only); floor_z / floor_id [B * H * W] or empty
+// (depth peeling). -> (ids [B * H * W] int64, -1 background, or with count
+// the number of covering fragments; depth [B * H * W] float64, +inf
+// background).
+std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor faces, int64_t H, int64_t W,
+                                                bool cull, int64_t bits, torch::Tensor floor_z,
+                                                torch::Tensor floor_id, bool count);
+// raster.cpp: rasterize's barycentric pass, forward (geometry/raster.py _bary_at).
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> raster_bary(torch::Tensor v, torch::Tensor x,
+                                                                                     torch::Tensor y, int64_t H,
+                                                                                     int64_t W);
+
 }  // namespace difftex

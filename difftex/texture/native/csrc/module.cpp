@@ -75,6 +75,11 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("front", &front, "mip level (and anisotropic / auto tap axis and count), no gradient", py::arg("dx"),
         py::arg("dy"), py::arg("bias"), py::kw_only(), py::arg("bias0"), py::arg("height"), py::arg("width"),
         py::arg("levels"), py::arg("kind"), py::arg("max_aniso"), py::arg("tolerance"));
+  m.def("raster", &raster, "rasterize's visibility pass (ids and float64 depth)", py::arg("pos"), py::arg("faces"),
+        py::arg("H"), py::arg("W"), py::arg("cull"), py::arg("bits"), py::arg("floor_z"), py::arg("floor_id"),
+        py::kw_only(), py::arg("count") = false);
+  m.def("raster_bary", &raster_bary, "rasterize's barycentric pass, forward", py::arg("v"), py::arg("x"),
+        py::arg("y"), py::arg("H"), py::arg("W"));
 
   // The constants mirrored from Python (common.h names the Python side of each).
   m.attr("INDEX_CAP") = kTwo52;

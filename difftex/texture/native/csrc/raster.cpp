@@ -1,0 +1,454 @@
+// The visibility pass of difftex.rasterize on the CPU (geometry/raster.py
+// _visibility, whose torch path stays the tested reference): per pixel the
+// id of the nearest covering triangle and its float64 NDC depth. The same
+// rules and the same floating-point operations in the same order as the
+// torch path, so both give identical ids:
+//   * triangles whose three corners have w > 0 and project inside the guard
+//     band are snapped to a fixed-point grid (2^bits units a pixel, origin
+//     at the image centre, rows growing downwards) and tested with exact
+//     int64 edge functions and the top-left rule (a centre on an edge
+//     belongs to the triangle it enters when nudged by (d, d^2), d -> 0+):
+//     watertight, each centre inside exactly one triangle of a closed fan;
+//   * the others (a corner at w <= 0 or far off screen) take float64 2D
+//     homogeneous edge functions (Olano & Greer 1997) of per-vertex
+//     power-of-two-scaled clip coordinates;
+//   * the depth is the float64 NDC z of the unsnapped triangle's plane at
+//     the pixel centre, kept where -1 <= z <= 1; nearest wins, a tie goes to
+//     the lowest face id; with a floor (depth peeling) only fragments behind
+//     the floor's (depth, id) in that order count.
+// Threads: triangles are set up and binned into bands of rows in parallel,
+// then each band is rasterized by one thread into its own rows (no races,
+// the result does not depend on the thread count).
+#include "kernels.h"
+
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <vector>
+
+namespace difftex {
+namespace {
+
+constexpr double kGuard = 536870912.0;  // 2^29: geometry/raster.py _GUARD
+constexpr int64_t kEmpty = std::numeric_limits<int64_t>::max();
+constexpr int64_t kBand = 8;  // rows a band
+
+enum Kind : uint8_t { DEAD = 0, EXACT = 1, FLOAT = 2 };
+
+struct Vert {
+  int64_t qx, qy;
+  double s;  // power-of-two scale of the float path
+  uint8_t code;
+  bool snapped;
+};
+
+struct Exact {
+  int64_t a[3], b[3], c[3], thr[3];
+  double z0, x0, y0, zx, zy;
+  int64_t c0, c1, r0, r1;
+};
+
+struct Float {
+  double a[3], b[3], c[3], thr[3], zc[3];
+  int64_t c0, c1, r0, r1;
+};
+
+inline int64_t floor_div(int64_t a, int64_t d) { return a >= 0 ? a / d : -((-a + d - 1) / d); }
+
+struct Ctx {
+  const double* pos;  // [V, 4] of this batch item
+  const int64_t* faces;
+  const Vert* verts;
+  int64_t H, W, S;
+  bool cull;
+};
+
+// Exact-path setup (raster.py _prepare_exact); false where the triangle
+// covers nothing.
+bool setup_exact(const Ctx& cx, int64_t f, Exact& t) {
+  const int64_t* fv = cx.faces + 3 * f;
+  int64_t x[3], y[3];
+  for (int i = 0; i < 3; ++i) {
+    x[i] = cx.verts[fv[i]].qx;
+    y[i] = cx.verts[fv[i]].qy;
+  }
+  for (int i = 0; i < 3; ++i) {
+    const int j = (i + 1) % 3, k = (i + 2) % 3;
+    t.a[i] = y[k] - y[j];
+    t.b[i] = x[j] - x[k];
+    t.c[i] = -(t.a[i] * x[j] + t.b[i] * y[j]);
+  }
+  const int64_t area = t.a[0] * x[0] + t.b[0] * y[0] + t.c[0];
+  if (cx.cull ? area <= 0 : area == 0) return false;
+  double nx[3], ny[3], nz[3];
+  for (int i = 0; i < 3; ++i) {
+    const double* p = cx.pos + 4 * fv[i];
+    nx[i] = p[0] / p[3];
+    ny[i] = p[1] / p[3];
+    nz[i] = p[2] / p[3];
+  }
+  const double dx1 = nx[1] - nx[0], dy1 = ny[1] - ny[0], dz1 = nz[1] - nz[0];
+  const double dx2 = nx[2] - nx[0], dy2 = ny[2] - ny[0], dz2 = nz[2] - nz[0];
+  const double d = dx1 * dy2 - dx2 * dy1;
+  t.zx = (dz1 * dy2 - dz2 * dy1) / d;
+  t.zy = (dx1 * dz2 - dx2 * dz1) / d;
+  if (!std::isfinite(t.zx) || !std::isfinite(t.zy)) return false;
+  t.z0 = nz[0];
+  t.x0 = nx[0];
+  t.y0 = ny[0];
+  const int64_t sgn = area > 0 ? 1 : -1;
+  for (int i = 0; i < 3; ++i) {
+    t.a[i] *= sgn;
+    t.b[i] *= sgn;
+    t.c[i] *= sgn;
+    t.thr[i] = (t.a[i] > 0 || (t.a[i] == 0 && t.b[i] > 0)) ? 0 : 1;
+  }
+  const int64_t h = int64_t(1) << (cx.S - 1);
+  const int64_t xmin = std::min({x[0], x[1], x[2]}), xmax = std::max({x[0], x[1], x[2]});
+  const int64_t ymin = std::min({y[0], y[1], y[2]}), ymax = std::max({y[0], y[1], y[2]});
+  t.c0 = std::max<int64_t>(0, -floor_div(-(xmin + (cx.W - 1) * h), 2 * h));
+  t.c1 = std::min<int64_t>(cx.W - 1, floor_div(xmax + (cx.W - 1) * h, 2 * h));
+  t.r0 = std::max<int64_t>(0, -floor_div(-(ymin + (cx.H - 1) * h), 2 * h));
+  t.r1 = std::min<int64_t>(cx.H - 1, floor_div(ymax + (cx.H - 1) * h, 2 * h));
+  return t.c0 <= t.c1 && t.r0 <= t.r1;
+}
+
+// Float-path setup (raster.py _prepare_float); the bounding box is the
+// projected one where every corner is in front of the near plane, else the
+// whole screen (the torch path clips it tighter: both are conservative).
+bool setup_float(const Ctx& cx, int64_t f, Float& t) {
+  const int64_t* fv = cx.faces + 3 * f;
+  double X[3], Y[3], Z[3], Wc[3];
+  for (int i = 0; i < 3; ++i) {
+    const double* p = cx.pos + 4 * fv[i];
+    const double s = cx.verts[fv[i]].s;
+    X[i] = p[0] * s;
+    Y[i] = p[1] * s;
+    Z[i] = p[2] * s;
+    Wc[i] = p[3] * s;
+  }
+  for (int i = 0; i < 3; ++i) {
+    const int j = (i + 1) % 3, k = (i + 2) % 3;
+    t.a[i] = Y[j] * Wc[k] - Wc[j] * Y[k];
+    t.b[i] = Wc[j] * X[k] - X[j] * Wc[k];
+    t.c[i] = X[j] * Y[k] - Y[j] * X[k];
+  }
+  const double det = X[0] * t.a[0] + Y[0] * t.b[0] + Wc[0] * t.c[0];
+  if (cx.cull ? !(det > 0) : !(det != 0)) return false;
+  const double inv_det = 1 / det;
+  t.zc[0] = (t.a[0] * Z[0] + t.a[1] * Z[1] + t.a[2] * Z[2]) * inv_det;
+  t.zc[1] = (t.b[0] * Z[0] + t.b[1] * Z[1] + t.b[2] * Z[2]) * inv_det;
+  t.zc[2] = (t.c[0] * Z[0] + t.c[1] * Z[1] + t.c[2] * Z[2]) * inv_det;
+  const double sgn = det > 0 ? 1.0 : -1.0;
+  for (int i = 0; i < 3; ++i) {
+    t.a[i] *= sgn;
+    t.b[i] *= sgn;
+    t.c[i] *= sgn;
+    t.thr[i] = (t.a[i] > 0 || (t.a[i] == 0 && t.b[i] > 0)) ? 0.0 : std::numeric_limits<double>::denorm_min();
+  }
+  bool front = true;
+  double xmin = INFINITY, xmax = -INFINITY, ymin = INFINITY, ymax = -INFINITY;
+  for (int i = 0; i < 3; ++i) {
+    if (!(Z[i] + Wc[i] >= 0 && Wc[i] > 0)) {
+      front = false;
+      break;
+    }
+    const double iw = 1 / Wc[i];
+    xmin = std::min(xmin, X[i] * iw);
+    xmax = std::max(xmax, X[i] * iw);
+    ymin = std::min(ymin, Y[i] * iw);
+    ymax = std::max(ymax, Y[i] * iw);
+  }
+  if (front) {
+    const double m = 1e-3, hw = cx.W / 2.0, hh = cx.H / 2.0;
+    auto cl = [](double v) { return std::min(1.0, std::max(-1.0, v)); };
+    t.c0 = std::max<int64_t>(0, int64_t(std::ceil((cl(xmin) + 1) * hw - 0.5 - m)));
+    t.c1 = std::min<int64_t>(cx.W - 1, int64_t(std::floor((cl(xmax) + 1) * hw - 0.5 + m)));
+    t.r0 = std::max<int64_t>(0, int64_t(std::ceil((1 - cl(ymax)) * hh - 0.5 - m)));
+    t.r1 = std::min<int64_t>(cx.H - 1, int64_t(std::floor((1 - cl(ymin)) * hh - 0.5 + m)));
+  } else {
+    t.c0 = 0;
+    t.c1 = cx.W - 1;
+    t.r0 = 0;
+    t.r1 = cx.H - 1;
+  }
+  return t.c0 <= t.c1 && t.r0 <= t.r1;
+}
+
+}  // namespace
+
+std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor faces, int64_t H, int64_t W,
+                                                bool cull, int64_t bits, torch::Tensor floor_z,
+                                                torch::Tensor floor_id, bool count) {
+  TORCH_CHECK(pos.device().is_cpu() && pos.scalar_type() == torch::kFloat64 && pos.dim() == 3 && pos.size(2) == 4,
+              "raster: pos must be a CPU float64 tensor [B, V, 4]");
+  TORCH_CHECK(faces.device().is_cpu() && faces.scalar_type() == torch::kInt64 && faces.dim() == 2 &&
+                  faces.size(1) == 3,
+              "raster: faces must be a CPU int64 tensor [F, 3]");
+  TORCH_CHECK(H > 0 && W > 0 && bits >= 0 && bits <= 16, "raster: bad resolution or sub-pixel bits");
+  pos = pos.contiguous();
+  faces = faces.contiguous();
+  const int64_t B = pos.size(0), V = pos.size(1), F = faces.size(0), HW = H * W;
+  const bool has_floor = floor_z.numel() > 0;
+  if (has_floor) {
+    TORCH_CHECK(floor_z.numel() == B * HW && floor_id.numel() == B * HW &&
+                    floor_z.scalar_type() == torch::kFloat64 && floor_id.scalar_type() == torch::kInt64,
+                "raster: floor must be float64 depth and int64 ids, [B * H * W] each");
+    floor_z = floor_z.contiguous();
+    floor_id = floor_id.contiguous();
+  }
+  auto ids = torch::empty({B * HW}, torch::kInt64);
+  auto depth = torch::empty({B * HW}, torch::kFloat64);
+  const double* fz = has_floor ? floor_z.data_ptr<double>() : nullptr;
+  const int64_t* fi = has_floor ? floor_id.data_ptr<int64_t>() : nullptr;
+  int64_t* out_id = ids.data_ptr<int64_t>();
+  double* out_z = depth.data_ptr<double>();
+  const int64_t S = bits;
+  const double sx = S > 0 ? double(W << (S - 1)) : 0.0, sy = S > 0 ? -double(H << (S - 1)) : 0.0;
+  std::vector<double> xs(W), ys(H);
+  for (int64_t c = 0; c < W; ++c) xs[c] = (double(c) + 0.5) * (2.0 / double(W)) - 1.0;
+  for (int64_t r = 0; r < H; ++r) ys[r] = -((double(r) + 0.5) * (2.0 / double(H)) - 1.0);
+  const int64_t nb = (H + kBand - 1) / kBand;
+  std::vector<Vert> verts(V);
+  std::vector<uint8_t> kind(F);
+  std::vector<int32_t> band0(F), band1(F);
+
+  for (int64_t bi = 0; bi < B; ++bi) {
+    const double* P = pos.data_ptr<double>() + bi * V * 4;
+    // Vertices: the float path's scale and outcode, the exact path's snap.
+    at::parallel_for(0, V, 4096, [&](int64_t lo, int64_t hi) {
+      for (int64_t v = lo; v < hi; ++v) {
+        const double* p = P + 4 * v;
+        Vert& o = verts[v];
+        int ex = 0;
+        std::frexp(std::max({std::abs(p[0]), std::abs(p[1]), std::abs(p[2]), std::abs(p[3])}), &ex);
+        o.s = std::ldexp(1.0, -ex);
+        const double X = p[0] * o.s, Y = p[1] * o.s, Z = p[2] * o.s, Wc = p[3] * o.s;
+        o.code = uint8_t((X > Wc) | ((X < -Wc) << 1) | ((Y > Wc) << 2) | ((Y < -Wc) << 3) | ((Z > Wc) << 4) |
+                         ((Z < -Wc) << 5));
+        o.snapped = false;
+        o.qx = o.qy = 0;
+        if (S > 0 && p[3] > 0) {
+          const double fx = (p[0] / p[3]) * sx, fy = (p[1] / p[3]) * sy;
+          if (std::abs(fx) <= kGuard && std::abs(fy) <= kGuard) {
+            o.snapped = true;
+            o.qx = int64_t(std::nearbyint(fx));
+            o.qy = int64_t(std::nearbyint(fy));
+          }
+        }
+      }
+    });
+    const Ctx cx{P, faces.data_ptr<int64_t>(), verts.data(), H, W, S, cull};
+    // Triangles: which path, and the bands of rows they touch.
+    at::parallel_for(0, F, 2048, [&](int64_t lo, int64_t hi) {
+      Exact e;
+      Float fl;
+      for (int64_t f = lo; f < hi; ++f) {
+        const int64_t* fv = cx.faces + 3 * f;
+        const Vert &v0 = verts[fv[0]], &v1 = verts[fv[1]], &v2 = verts[fv[2]];
+        kind[f] = DEAD;
+        if (v0.code & v1.code & v2.code) continue;
+        if (v0.snapped && v1.snapped && v2.snapped) {
+          if (!setup_exact(cx, f, e)) continue;
+          kind[f] = EXACT;
+          band0[f] = int32_t(e.r0 / kBand);
+          band1[f] = int32_t(e.r1 / kBand);
+        } else {
+          if (!setup_float(cx, f, fl)) continue;
+          kind[f] = FLOAT;
+          band0[f] = int32_t(fl.r0 / kBand);
+          band1[f] = int32_t(fl.r1 / kBand);
+        }
+      }
+    });
+    // Binning: per chunk of triangles a count per band, then offsets so
+    // that every band lists its triangles in increasing id.
+    const int64_t chunk = std::max<int64_t>(4096, (F + 63) / 64);
+    const int64_t nch = std::max<int64_t>(1, (F + chunk - 1) / chunk);
+    std::vector<int64_t> cnt(nch * nb, 0);
+    at::parallel_for(0, nch, 1, [&](int64_t lo, int64_t hi) {
+      for (int64_t ch = lo; ch < hi; ++ch)
+        for (int64_t f = ch * chunk; f < std::min(F, (ch + 1) * chunk); ++f)
+          if (kind[f] != DEAD)
+            for (int32_t b = band0[f]; b <= band1[f]; ++b) ++cnt[ch * nb + b];
+    });
+    std::vector<int64_t> start(nb + 1, 0);
+    int64_t total = 0;
+    for (int64_t b = 0; b < nb; ++b) {
+      start[b] = total;
+      for (int64_t ch = 0; ch < nch; ++ch) {
+        const int64_t n = cnt[ch * nb + b];
+        cnt[ch * nb + b] = total;
+        total += n;
+      }
+    }
+    start[nb] = total;
+    std::vector<int32_t> list(total);
+    at::parallel_for(0, nch, 1, [&](int64_t lo, int64_t hi) {
+      for (int64_t ch = lo; ch < hi; ++ch)
+        for (int64_t f = ch * chunk; f < std::min(F, (ch + 1) * chunk); ++f)
+          if (kind[f] != DEAD)
+            for (int32_t b = band0[f]; b <= band1[f]; ++b) list[cnt[ch * nb + b]++] = int32_t(f);
+    });
+    // Bands: each thread owns its rows of the output.
+    int64_t* oid = out_id + bi * HW;
+    double* oz = out_z + bi * HW;
+    const double* bfz = has_floor ? fz + bi * HW : nullptr;
+    const int64_t* bfi = has_floor ? fi + bi * HW : nullptr;
+    at::parallel_for(0, nb, 1, [&](int64_t lo, int64_t hi) {
+      Exact e;
+      Float fl;
+      for (int64_t band = lo; band < hi; ++band) {
+        const int64_t R0 = band * kBand, R1 = std::min(H, R0 + kBand);
+        for (int64_t p = R0 * W; p < R1 * W; ++p) {
+          oz[p] = INFINITY;
+          oid[p] = count ? 0 : kEmpty;
+        }
+        // One covered fragment (z in range): count it, or the depth test.
+        auto frag = [&](int64_t p, double z, int64_t f) {
+          if (!(z >= -1 && z <= 1)) return;
+          if (count) {
+            ++oid[p];
+            return;
+          }
+          if (has_floor && !(z > bfz[p] || (z == bfz[p] && f > bfi[p]))) return;
+          if (z < oz[p] || (z == oz[p] && f < oid[p])) {
+            oz[p] = z;
+            oid[p] = f;
+          }
+        };
+        for (int64_t li = start[band]; li < start[band + 1]; ++li) {
+          const int64_t f = list[li];
+          if (kind[f] == EXACT) {
+            setup_exact(cx, f, e);
+            const int64_t h = int64_t(1) << (S - 1), step = 2 * h;
+            const int64_t r0 = std::max(e.r0, R0), r1 = std::min(e.r1, R1 - 1);
+            const int64_t qx0 = (2 * e.c0 + 1 - W) * h;
+            for (int64_t r = r0; r <= r1; ++r) {
+              const int64_t qy = (2 * r + 1 - H) * h;
+              int64_t E0 = e.a[0] * qx0 + e.c[0] + e.b[0] * qy;
+              int64_t E1 = e.a[1] * qx0 + e.c[1] + e.b[1] * qy;
+              int64_t E2 = e.a[2] * qx0 + e.c[2] + e.b[2] * qy;
+              const int64_t s0 = e.a[0] * step, s1 = e.a[1] * step, s2 = e.a[2] * step;
+              const double dy = e.zy * (ys[r] - e.y0);
+              if (e.c1 - e.c0 < 8) {
+                for (int64_t c = e.c0; c <= e.c1; ++c, E0 += s0, E1 += s1, E2 += s2) {
+                  if (E0 >= e.thr[0] && E1 >= e.thr[1] && E2 >= e.thr[2])
+                    frag(r * W + c, (e.z0 + e.zx * (xs[c] - e.x0)) + dy, f);
+                }
+                continue;
+              }
+              // Wider boxes: the row's span solved exactly per edge (E is
+              // affine in the column, steps s_k), then no test per pixel.
+              int64_t lo = 0, hi = e.c1 - e.c0;
+              const int64_t Es[3] = {E0, E1, E2}, ss[3] = {s0, s1, s2};
+              for (int k = 0; k < 3 && lo <= hi; ++k) {
+                const int64_t d = Es[k] - e.thr[k];  // inside where d + ss[k] * i >= 0
+                if (ss[k] > 0)
+                  lo = std::max(lo, -floor_div(d, ss[k]));
+                else if (ss[k] < 0)
+                  hi = std::min(hi, floor_div(d, -ss[k]));
+                else if (d < 0)
+                  hi = -1;
+              }
+              for (int64_t c = e.c0 + lo; c <= e.c0 + hi; ++c)
+                frag(r * W + c, (e.z0 + e.zx * (xs[c] - e.x0)) + dy, f);
+            }
+          } else {
+            setup_float(cx, f, fl);
+            const int64_t r0 = std::max(fl.r0, R0), r1 = std::min(fl.r1, R1 - 1);
+            for (int64_t r = r0; r <= r1; ++r) {
+              const double y = ys[r];
+              const double by0 = fl.b[0] * y, by1 = fl.b[1] * y, by2 = fl.b[2] * y, zy = fl.zc[1] * y;
+              for (int64_t c = fl.c0; c <= fl.c1; ++c) {
+                const double x = xs[c];
+                if ((fl.a[0] * x + fl.c[0]) + by0 >= fl.thr[0] && (fl.a[1] * x + fl.c[1]) + by1 >= fl.thr[1] &&
+                    (fl.a[2] * x + fl.c[2]) + by2 >= fl.thr[2])
+                  frag(r * W + c, (fl.zc[0] * x + fl.zc[2]) + zy, f);
+              }
+            }
+          }
+        }
+        if (!count)
+          for (int64_t p = R0 * W; p < R1 * W; ++p)
+            if (oid[p] == kEmpty) oid[p] = -1;
+      }
+    });
+  }
+  return {ids, depth};
+}
+
+// rasterize's barycentric pass, forward only (geometry/raster.py _bary_at,
+// the same formulas; its torch ops give the gradients): v [N, 3, 4] the
+// clip-space corners of each covered pixel's triangle, x, y [N] its NDC
+// centre -> bary [N, 3], depth [N], d(bary)/d(column) [N, 3],
+// d(bary)/d(row) [N, 3], zeros where degenerate.
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> raster_bary(torch::Tensor v, torch::Tensor x,
+                                                                                     torch::Tensor y, int64_t H,
+                                                                                     int64_t W) {
+  TORCH_CHECK(v.device().is_cpu() && v.dim() == 3 && v.size(1) == 3 && v.size(2) == 4 &&
+                  x.scalar_type() == v.scalar_type() && y.scalar_type() == v.scalar_type(),
+              "raster_bary: expected v [N, 3, 4] and x, y [N] of one float dtype on the CPU");
+  v = v.contiguous();
+  x = x.contiguous();
+  y = y.contiguous();
+  const int64_t N = v.size(0);
+  auto bary = torch::empty({N, 3}, v.options()), depth = torch::empty({N}, v.options());
+  auto dx = torch::empty({N, 3}, v.options()), dy = torch::empty({N, 3}, v.options());
+  AT_DISPATCH_FLOATING_TYPES(v.scalar_type(), "raster_bary", [&] {
+    using T = scalar_t;
+    const T* pv = v.data_ptr<T>();
+    const T *px = x.data_ptr<T>(), *py = y.data_ptr<T>();
+    T *pb = bary.data_ptr<T>(), *pd = depth.data_ptr<T>(), *pdx = dx.data_ptr<T>(), *pdy = dy.data_ptr<T>();
+    const T sx = T(2.0 / double(W)), sy = T(-2.0 / double(H));
+    at::parallel_for(0, N, 4096, [&](int64_t lo, int64_t hi) {
+      for (int64_t n = lo; n < hi; ++n) {
+        const T* c = pv + 12 * n;
+        T m = 0;
+        for (int i = 0; i < 12; ++i) m = std::max(m, std::abs(c[i]));
+        int ex = 0;
+        std::frexp(m, &ex);
+        const T sc = std::ldexp(T(1), -ex);
+        T X[3], Y[3], Z[3], Wc[3];
+        for (int i = 0; i < 3; ++i) {
+          X[i] = c[4 * i] * sc;
+          Y[i] = c[4 * i + 1] * sc;
+          Z[i] = c[4 * i + 2] * sc;
+          Wc[i] = c[4 * i + 3] * sc;
+        }
+        T a[3], b[3], e[3];
+        for (int i = 0; i < 3; ++i) {
+          const int j = (i + 1) % 3, k = (i + 2) % 3;
+          a[i] = Y[j] * Wc[k] - Wc[j] * Y[k];
+          b[i] = Wc[j] * X[k] - X[j] * Wc[k];
+          const T cc = X[j] * Y[k] - Y[j] * X[k];
+          e[i] = a[i] * px[n] + b[i] * py[n] + cc;
+        }
+        const T s = e[0] + e[1] + e[2];
+        T* ob = pb + 3 * n;
+        T* odx = pdx + 3 * n;
+        T* ody = pdy + 3 * n;
+        if (s == 0) {
+          for (int i = 0; i < 3; ++i) ob[i] = odx[i] = ody[i] = 0;
+          pd[n] = 0;
+          continue;
+        }
+        const T sa = a[0] + a[1] + a[2], sb = b[0] + b[1] + b[2];
+        for (int i = 0; i < 3; ++i) {
+          ob[i] = e[i] / s;
+          odx[i] = (a[i] - ob[i] * sa) / s * sx;
+          ody[i] = (b[i] - ob[i] * sb) / s * sy;
+        }
+        const T zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
+        const T wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
+        pd[n] = wn != 0 ? zn / wn : T(0);
+      }
+    });
+  });
+  return {bary, depth, dx, dy};
+}
+
+}  // namespace difftex
