@@ -17,6 +17,7 @@ from .mapping import (box_uv, cylindrical_uv, normal_uv, planar_uv, spherical_uv
                       uv_transform)
 from .nn import TexturedMesh
 from .texture import WRAP_MODES, Mipmap, levels_needed, lod, mipmap, sample
+from .texture import Ripmap, ripmap
 
 __all__ = [
     "backend", "camera", "envmap", "io", "mapping", "metrics",
@@ -24,4 +25,5 @@ __all__ = [
     "box_uv", "cube_to_direction", "cylindrical_uv", "direction_to_cube", "direction_to_equirect_uv",
     "equirect_uv_to_direction", "interpolate", "levels_needed", "load_mesh", "load_texture", "lod", "mipmap",
     "normal_uv", "planar_uv", "rasterize", "sample", "save_image", "spherical_uv", "texture_matrix", "uv_transform",
+    "Ripmap", "ripmap",
 ]

@@ -125,6 +125,8 @@ PUBLIC = {
     "TexturedMesh", "levels_needed",
     # added with the subpackages
     "backend", "envmap", "metrics", "equirect_uv_to_direction", "cube_to_direction",
+    # ripmaps (issue 19)
+    "Ripmap", "ripmap",
 }
 
 
