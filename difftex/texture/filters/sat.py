@@ -15,17 +15,20 @@ Wrap modes extend I per axis (u shown; v alike), with ``G(x) = I(x, .)``:
 * repeat: ``G(x) = q G(W) + G(r)`` for ``x = q W + r``, ``0 <= r < W``;
 * mirror (period 2W): ``G(x) = 2q G(W) + G(r)`` for ``r <= W``, else
   ``(2q + 2) G(W) - G(2W - r)``;
-* clamp: the edge texel continues, i.e. G extends linearly past 0 and W
-  with the slope of the end cells: the bilinear interpolation of S
-  extrapolated (the interpolation's fraction is left unclamped);
+* clamp: the edge texel continues, so G extends linearly past 0 and W with
+  the slope of the end cells: ``G(x) = G(c) + (x - c) (G(e) - G(e - 1))``,
+  ``c`` the coordinate clamped to [0, W], e = W past the far end, 1 before
+  0 (a box at most W wide overshoots at one end only);
 * border: ``I_ext(x, y) = I(cx, cy) + b (x y - cx cy)`` with ``cx, cy`` the
   coordinates clamped to the texture along the border axes (the border
   constant b fills the rest of the box).
 
 So a box sum is ``sum_k sum_l cu_k cv_l S~(pu_k, pv_l)``, S~ the bilinear
-(extrapolating) interpolation of S, with 2 terms per axis for clamp /
-border and 3 for repeat / mirror (both corners and the whole periods
-between them): 16 to 36 table reads per channel, whatever the box's size.
+interpolation of S at positions inside the table, with 2 terms per axis
+for border, 3 for repeat / mirror (both ends and the whole periods between
+them) and 4 for clamp: 4 to 16 bilinear reads of the table per point,
+whatever the box's size, all in one ``grid_sample`` call on the float64
+table (``align_corners=True`` puts its entries at integer positions).
 
 The box is centred at uv with sides ``2^D_u x 2^D_v`` texels, ``D = clamp(
 log2 extent + lod_bias, 0, log2 period)`` per axis (the extents of
@@ -49,64 +52,78 @@ import math
 from typing import Union
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from ..lod import footprint, level, log2_extents
 from ..wrap import drop_periods, floor_index
 
-# Points per chunk of the table reads (and their backward): bounds the
-# gathered [chunk, 36, C] float64 values to a few tens of MB.
+# Values per chunk of the table reads (and their backward): bounds the
+# [C, chunk, K] float64 reads and their gradients to a few tens of MB.
 _CHUNK_VALUES = 1 << 22
 
 
 def summed_area_table(texture: Tensor) -> Tensor:
-    """The table of one texture [1, C, H, W]: [(H + 1) * (W + 1), C] float64, row-major, channels last.
+    """The table of one texture [1, C, H, W]: [1, C, H + 1, W + 1] float64, ``S[b, a] = sum_{r < b, c < a} f``.
 
     Differentiable where autograd records (out-of-place ops); under no_grad
     built in place in one buffer.
     """
     _, C, H, W = texture.shape
-    t = texture[0].permute(1, 2, 0)
     if torch.is_grad_enabled() and texture.requires_grad:
-        S = torch.nn.functional.pad(t.double().cumsum(0).cumsum(1), (0, 0, 1, 0, 1, 0))
-    else:
-        S = texture.new_zeros((H + 1, W + 1, C), dtype=torch.float64)
-        S[1:, 1:] = t
-        S.cumsum_(0).cumsum_(1)
-    return S.reshape((H + 1) * (W + 1), C)
+        return F.pad(texture.double().cumsum(-2).cumsum(-1), (1, 0, 1, 0))
+    S = texture.new_zeros((1, C, H + 1, W + 1), dtype=torch.float64)
+    S[..., 1:, 1:] = texture
+    return S.cumsum_(-2).cumsum_(-1)
 
 
-def _axis_weights(p: Tensor, c: Tensor, n: int) -> tuple[Tensor, Tensor]:
-    """Per term the two table entries of the (extrapolating) linear interpolation along an axis of n cells.
-
-    p, c: [m, K] positions (0..n, outside for clamp) and coefficients.
-    Returns weights [m, 2K] (``c (1 - s)``, ``c s``) and entry indices [m, 2K].
-    """
-    i = floor_index(p.detach()).clamp_(0, n - 1)
-    s = p - i.to(p.dtype)
-    return torch.stack((c * (1 - s), c * s), -1).flatten(1), torch.stack((i, i + 1), -1).flatten(1)
+def _suffix_sum(x: Tensor, dim: int) -> Tensor:
+    """Inclusive sums from each entry to the end of ``dim``: the total minus the prefix before the entry
+    (no reversed copies; float64 keeps the difference exact enough)."""
+    prefix = x.cumsum(dim)
+    return prefix.narrow(dim, x.shape[dim] - 1, 1) - prefix + x
 
 
-def _weights(pu: Tensor, cu: Tensor, pv: Tensor, cv: Tensor, height: int, width: int) -> tuple[Tensor, Tensor]:
-    """Weights [m, J] and flat table indices [m, J] of the box sums (J = 4 Ku Kv)."""
-    wu, iu = _axis_weights(pu, cu, width)
-    wv, iv = _axis_weights(pv, cv, height)
-    w = (wv.unsqueeze(2) * wu.unsqueeze(1)).flatten(1)
-    idx = (iv.unsqueeze(2) * (width + 1) + iu.unsqueeze(1)).flatten(1)
-    return w, idx
+def _grid(pu: Tensor, pv: Tensor, height: int, width: int) -> Tensor:
+    """grid_sample's grid [1, M, Kv * Ku, 2] of every (pu_k, pv_l) pair: align_corners=True puts -1 and 1 on the
+    table's first and last entries, i.e. texel-space positions 0 and W (H)."""
+    M, Ku, Kv = pu.shape[0], pu.shape[1], pv.shape[1]
+    gx = (pu * (2.0 / width) - 1).unsqueeze(1).expand(M, Kv, Ku)
+    gy = (pv * (2.0 / height) - 1).unsqueeze(2).expand(M, Kv, Ku)
+    return torch.stack((gx, gy), -1).reshape(1, M, Kv * Ku, 2)
 
 
-def _read(table: Tensor, w: Tensor, idx: Tensor) -> Tensor:
-    """sum_j w[m, j] table[idx[m, j]]: [m, C]."""
-    vals = table.index_select(0, idx.reshape(-1)).view(*idx.shape, table.shape[1])
-    return torch.bmm(w.unsqueeze(1), vals).squeeze(1)
+def _coefs(cu: Tensor, cv: Tensor) -> Tensor:
+    """[M, Kv * Ku] products ``cv_l cu_k`` in the order of ``_grid``."""
+    return (cv.unsqueeze(2) * cu.unsqueeze(1)).flatten(1)
+
+
+def _read(table: Tensor, grid: Tensor) -> Tensor:
+    """The table's bilinear interpolation at the grid: [C, M, K]."""
+    return F.grid_sample(table, grid, mode="bilinear", padding_mode="border", align_corners=True)[0]
 
 
 def box_sums_reference(texture: Tensor, pu: Tensor, cu: Tensor, pv: Tensor, cv: Tensor) -> Tensor:
-    """``_BoxSums`` in autograd-tracked torch ops (its double backward, and the tests' reference)."""
-    H, W = texture.shape[-2:]
-    w, idx = _weights(pu, cu, pv, cv, H, W)
-    return _read(summed_area_table(texture), w, idx)
+    """``_BoxSums`` in autograd-tracked torch ops, differentiable to any order (double backward, tests).
+
+    The bilinear interpolation of the table written as gathers (grid_sample's
+    backward is not differentiable): the cell ``i = clamp(floor(p), 0, n - 1)``
+    and the fraction ``p - i`` per axis.
+    """
+    _, C, H, W = texture.shape
+    table = summed_area_table(texture)[0].flatten(1)  # [C, (H + 1) (W + 1)]
+
+    def axis(p: Tensor, c: Tensor, n: int) -> tuple[Tensor, Tensor]:
+        i = floor_index(p.detach()).clamp_(0, n - 1)
+        s = p - i.to(p.dtype)
+        return torch.stack((c * (1 - s), c * s), -1).flatten(1), torch.stack((i, i + 1), -1).flatten(1)
+
+    wu, iu = axis(pu, cu, W)
+    wv, iv = axis(pv, cv, H)
+    w = (wv.unsqueeze(2) * wu.unsqueeze(1)).flatten(1)
+    idx = (iv.unsqueeze(2) * (W + 1) + iu.unsqueeze(1)).flatten(1)
+    vals = table.index_select(1, idx.reshape(-1)).view(C, *idx.shape)
+    return (vals * w).sum(-1)
 
 
 def _chunks(m: int, terms: int, channels: int) -> list[slice]:
@@ -115,13 +132,14 @@ def _chunks(m: int, terms: int, channels: int) -> list[slice]:
 
 
 class _BoxSums(torch.autograd.Function):
-    """Box sums ``sum_k sum_l cu_k cv_l S~(pu_k, pv_l)`` of one texture [1, C, H, W] -> [M, C] float64.
+    """Box sums ``sum_k sum_l cu_k cv_l S~(pu_k, pv_l)`` of one texture [1, C, H, W] -> [C, M] float64.
 
-    pu, cu: [M, Ku]; pv, cv: [M, Kv] float64 (positions in texel units,
-    coefficients). The backward recomputes the table only for the position
-    and coefficient gradients, and gives the texture the adjoint of the
-    prefix sums: the weights scattered into a [H + 1, W + 1] buffer, then
-    suffix-summed along both axes.
+    pu, cu: [M, Ku]; pv, cv: [M, Kv] float64 (positions in texel units, in
+    [0, W] and [0, H], and coefficients). S~ is read with grid_sample on the
+    float64 table. Only the texture and these [M, K] tensors are kept for
+    the backward, which rebuilds the table, takes grid_sample's backward
+    (the table's gradient: the weights scattered; the positions') and gives
+    the texture the adjoint of the prefix sums, a suffix sum along both axes.
     """
 
     @staticmethod
@@ -129,9 +147,9 @@ class _BoxSums(torch.autograd.Function):
         ctx.save_for_backward(texture, pu, cu, pv, cv)
         H, W = texture.shape[-2:]
         table = summed_area_table(texture)
-        out = pu.new_empty((pu.shape[0], table.shape[1]))
-        for sl in _chunks(pu.shape[0], 4 * pu.shape[1] * pv.shape[1], table.shape[1]):
-            out[sl] = _read(table, *_weights(pu[sl], cu[sl], pv[sl], cv[sl], H, W))
+        out = pu.new_empty((table.shape[1], pu.shape[0]))
+        for sl in _chunks(pu.shape[0], pu.shape[1] * pv.shape[1], table.shape[1]):
+            out[:, sl] = (_read(table, _grid(pu[sl], pv[sl], H, W)) * _coefs(cu[sl], cv[sl])).sum(-1)
         return out
 
     @staticmethod
@@ -146,42 +164,50 @@ class _BoxSums(torch.autograd.Function):
                 got = iter(torch.autograd.grad(out, inputs, grad, create_graph=True, allow_unused=True))
             return tuple(next(got) if n else None for n in need)
         _, C, H, W = texture.shape
-        need_geom = any(need[1:])
-        table = summed_area_table(texture.detach()) if need_geom else None
-        g_table = grad.new_zeros(((H + 1) * (W + 1), C)) if need[0] else None
-        g_geom: list[list[Tensor]] = [[] for _ in range(4)]
-        for sl in _chunks(pu.shape[0], 4 * pu.shape[1] * pv.shape[1], C):
-            g = grad[sl]
-            # The weights again, as a small local graph: its gradient carries the positions' and coefficients'.
-            geom = [x[sl].detach().requires_grad_(n) for x, n in zip((pu, cu, pv, cv), need[1:])]
-            with torch.enable_grad():
-                w, idx = _weights(*geom, H, W)
-            if g_table is not None:
-                g_table.index_add_(0, idx.reshape(-1), (w.detach().unsqueeze(-1) * g.unsqueeze(1)).reshape(-1, C))
-            if need_geom:
-                vals = table.index_select(0, idx.reshape(-1)).view(*idx.shape, C)
-                g_w = torch.bmm(vals, g.unsqueeze(-1)).squeeze(-1)
-                leaves = [x for x in geom if x.requires_grad]
-                parts = iter(torch.autograd.grad(w, leaves, g_w, allow_unused=True))
-                for k, x in enumerate(geom):
-                    if x.requires_grad:
-                        part = next(parts)
-                        g_geom[k].append(torch.zeros_like(x) if part is None else part)
+        M, Ku, Kv = pu.shape[0], pu.shape[1], pv.shape[1]
+        table = summed_area_table(texture.detach())
+        g_table = None
+        parts: dict[int, list[Tensor]] = {k: [] for k in range(1, 5) if need[k]}
+        for sl in _chunks(M, Ku * Kv, C):
+            grid = _grid(pu[sl], pv[sl], H, W)
+            coef = _coefs(cu[sl], cv[sl])
+            g = grad[:, sl].unsqueeze(-1)  # [C, m, 1]
+            if need[0] or need[1] or need[3]:
+                gt, gg = torch.ops.aten.grid_sampler_2d_backward(
+                    (g * coef).unsqueeze(0), table, grid, 0, 1, True, [need[0], need[1] or need[3]])
+                if need[0]:
+                    g_table = gt if g_table is None else g_table.add_(gt)
+                if need[1]:
+                    parts[1].append(gg[0, ..., 0].view(-1, Kv, Ku).sum(1) * (2.0 / W))
+                if need[3]:
+                    parts[3].append(gg[0, ..., 1].view(-1, Kv, Ku).sum(2) * (2.0 / H))
+            if need[2] or need[4]:
+                g_coef = (_read(table, grid) * g).sum(0).view(-1, Kv, Ku)  # d out / d (cv_l cu_k)
+                if need[2]:
+                    parts[2].append((g_coef * cv[sl].unsqueeze(2)).sum(1))
+                if need[4]:
+                    parts[4].append((g_coef * cu[sl].unsqueeze(1)).sum(2))
         grad_tex = None
         if g_table is not None:
-            # Adjoint of S[b, a] = sum_{r < b, c < a} f[r, c]: grad f[r, c] = sum_{b > r, a > c} grad S[b, a].
-            g = g_table.view(H + 1, W + 1, C).flip(0, 1).cumsum_(0).cumsum_(1).flip(0, 1)
-            grad_tex = g[1:, 1:].permute(2, 0, 1).unsqueeze(0).to(texture.dtype)
-        return (grad_tex, *(torch.cat(parts) if n else None for parts, n in zip(g_geom, need[1:])))
+            # Adjoint of S[b, a] = sum_{r < b, c < a} f[r, c]: grad f[r, c] = sum_{b > r, a > c} grad S[b, a],
+            # the suffix sums of grad S[1:, 1:] along both axes (the first row and column feed no texel).
+            grad_tex = _suffix_sum(_suffix_sum(g_table[..., 1:, 1:], -1), -2).to(texture.dtype)
+        return (grad_tex, *(torch.cat(parts[k]) if need[k] else None for k in range(1, 5)))
 
 
 def _axis_terms(x0: Tensor, x1: Tensor, n: int, mode: str) -> tuple[Tensor, Tensor]:
-    """Positions and coefficients [M, K] of ``G_ext(x1) - G_ext(x0)`` along one axis (module docstring)."""
-    if mode in ("clamp", "border"):
-        if mode == "border":
-            x0, x1 = x0.clamp(0, n), x1.clamp(0, n)
+    """Positions (in [0, n]) and coefficients [M, K] of ``G_ext(x1) - G_ext(x0)`` along one axis (module docstring)."""
+    if mode == "border":
         one = torch.ones_like(x0)
-        return torch.stack((x1, x0), -1), torch.stack((one, -one), -1)
+        return torch.stack((x1.clamp(0, n), x0.clamp(0, n)), -1), torch.stack((one, -one), -1)
+    if mode == "clamp":
+        # G(c) plus the overshoot times the end cell's slope G(e) - G(e - 1). A box is at most n wide, so only
+        # one end can overshoot: one slope term, at e = n (past the far end) or e = 1 (before 0).
+        c0, c1 = x0.clamp(0, n), x1.clamp(0, n)
+        over = (x1 - c1) - (x0 - c0)
+        e = torch.where(x1.detach() > n, float(n), 1.0).to(x0.dtype)
+        one = torch.ones_like(x0)
+        return torch.stack((c1, c0, e, e - 1), -1), torch.stack((one, -one, over, -over), -1)
     period = 2 * n if mode == "mirror" else n
     ends = torch.stack((x0, x1), -1)
     q = torch.floor(ends.detach() / period)
@@ -242,6 +268,5 @@ def sat_points(texture: Tensor, uv: Tensor, uv_dx: Tensor, uv_dy: Tensor, lod_bi
     if "border" in (wrap_u, wrap_v):
         inner = ((x1.clamp(0, W) - x0.clamp(0, W)) if wrap_u == "border" else x1 - x0) * \
                 ((y1.clamp(0, H) - y0.clamp(0, H)) if wrap_v == "border" else y1 - y0)
-        sums = sums + (border * (area - inner)).unsqueeze(-1)
-    out = (sums / area.unsqueeze(-1)).to(texture.dtype).t()
-    return torch.where(ok, out, float("nan"))
+        sums = sums + border * (area - inner)
+    return torch.where(ok, (sums / area).to(texture.dtype), float("nan"))
