@@ -1,14 +1,13 @@
 """The "ripmap" filter (difftex/texture/filters/ripmap.py): values, accuracy where it wins and loses, gradients."""
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 
 import difftex
 from difftex.metrics import psnr
-from difftex.testing import checker_noise_texture, supersampled
+from difftex.testing import checker_noise_texture
+from experiments.studies.box_filters import footprint_points, parallelogram_reference, rotated
 
 f64 = torch.float64
 WRAPS = ("repeat", "clamp", "mirror", "border")
@@ -41,32 +40,17 @@ def test_a_texture_constant_along_v_reads_as_a_one_dimensional_mip_along_u(wrap_
     torch.testing.assert_close(out, ref, atol=1e-12, rtol=0)
 
 
-def _constant_footprint_scene(J: list[list[float]], size: int = 64, n: int = 16, ss: int = 16):
-    """n x n random points with one footprint J (texels per pixel column / row, columns) and its ss x ss
-    supersampled reference over the parallelogram ``uv + a dx + b dy``."""
-    tex = checker_noise_texture(size, dtype=f64)
-    uv = torch.rand(1, n, n, 2, generator=_gen(11), dtype=f64)
-    dx = torch.tensor([J[0][0], J[1][0]], dtype=f64) / size
-    dy = torch.tensor([J[0][1], J[1][1]], dtype=f64) / size
-    a = (torch.arange(ss, dtype=f64) + 0.5) / ss - 0.5
-    A, B = torch.meshgrid(a, a, indexing="xy")
-    sub = uv[0, :, :, None, None, :] + A[..., None] * dx + B[..., None] * dy  # [n, n, ss, ss, 2]
-    ref = supersampled(tex, sub.permute(0, 2, 1, 3, 4).reshape(1, n * ss, n * ss, 2), ss)
-    return tex, uv, dx.expand(1, n, n, 2), dy.expand(1, n, n, 2), ref
-
-
 def _scores(J):
-    tex, uv, dx, dy, ref = _constant_footprint_scene(J)
+    # Every point with the footprint J (texels per pixel column / row, as columns), scored against 16 x 16
+    # bilinear samples over its parallelogram: the study experiments/studies/box_filters.py charts.
+    tex = checker_noise_texture(64, dtype=f64)
+    uv, dx, dy = footprint_points(16, 64, J, seed=11)
+    ref = parallelogram_reference(tex, uv, dx, dy)
     return {f: psnr(difftex.sample(tex, uv, filter=f, uv_dx=dx, uv_dy=dy), ref)
             for f in ("trilinear", "ripmap", "sat", "anisotropic")}
 
 
-def _rotated(major: float, minor: float, degrees: float) -> list[list[float]]:
-    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
-    return [[c * major, -s * minor], [s * major, c * minor]]
-
-
-@pytest.mark.parametrize("J", [_rotated(8, 1, 0), _rotated(1, 8, 0), _rotated(16, 2, 0)], ids=["u8:1", "v1:8", "u16:2"])
+@pytest.mark.parametrize("J", [rotated(8, 1, 0), rotated(1, 8, 0), rotated(16, 2, 0)], ids=["u8:1", "v1:8", "u16:2"])
 def test_axis_aligned_anisotropic_footprints_beat_trilinear(J):
     # Measured: 39.4 vs 35.0 dB (u 8:1), 39.4 vs 35.5 (v 1:8), 43.0 vs 39.6 (16:2); the summed-area table's
     # exact box is 48-60 dB.
@@ -75,7 +59,7 @@ def test_axis_aligned_anisotropic_footprints_beat_trilinear(J):
     assert s["sat"] >= s["ripmap"] + 5.0, s
 
 
-@pytest.mark.parametrize("J", [_rotated(8, 1, 45), _rotated(16, 2, 45)], ids=["45deg 8:1", "45deg 16:2"])
+@pytest.mark.parametrize("J", [rotated(8, 1, 45), rotated(16, 2, 45)], ids=["45deg 8:1", "45deg 16:2"])
 def test_a_diagonal_footprint_gains_nothing_over_trilinear(J):
     # The seed's warning as numbers: a 45-degree footprint's box is a square, so the ripmap reads the level
     # trilinear reads (measured 15.9 vs 15.6 dB and 17.2 vs 17.2) while the anisotropic taps along the
