@@ -145,10 +145,10 @@ def test_gradcheck_texture_uv_derivatives_and_bias(wrap):
 def test_double_backward():
     # The backward is differentiable too: create_graph runs the torch reference of the box sums.
     g = _gen(17)
-    tex = torch.rand(1, 1, 4, 5, dtype=f64, generator=g, requires_grad=True)
-    uv = (torch.rand(1, 1, 3, 2, generator=g, dtype=f64) * 3 - 1).requires_grad_()
-    dx = (torch.randn(1, 1, 3, 2, generator=g, dtype=f64) * 0.4).requires_grad_()
-    dy = (torch.randn(1, 1, 3, 2, generator=g, dtype=f64) * 0.3).requires_grad_()
+    tex = torch.rand(1, 1, 3, 4, dtype=f64, generator=g, requires_grad=True)
+    uv = (torch.rand(1, 1, 2, 2, generator=g, dtype=f64) * 3 - 1).requires_grad_()
+    dx = (torch.randn(1, 1, 2, 2, generator=g, dtype=f64) * 0.4).requires_grad_()
+    dy = (torch.randn(1, 1, 2, 2, generator=g, dtype=f64) * 0.3).requires_grad_()
     fn = lambda t, u, a, b: difftex.sample(t, u, filter="sat", wrap=("mirror", "border"), border_value=BORDER,
                                            uv_dx=a, uv_dy=b)
     assert torch.autograd.gradgradcheck(fn, (tex, uv, dx, dy), atol=1e-6)
