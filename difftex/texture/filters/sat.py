@@ -165,7 +165,12 @@ class _BoxSums(torch.autograd.Function):
             return tuple(next(got) if n else None for n in need)
         _, C, H, W = texture.shape
         M, Ku, Kv = pu.shape[0], pu.shape[1], pv.shape[1]
-        table = summed_area_table(texture.detach())
+        if any(need[1:]) or texture.device.type != "cpu":
+            table = summed_area_table(texture.detach())
+        else:
+            # The texture's gradient alone (fitting a texture): the CPU grid_sample backward scatters the weights
+            # without reading the table (tested), so it gets a stand-in of its shape instead of a rebuilt one.
+            table = texture.new_zeros((), dtype=torch.float64).expand(1, C, H + 1, W + 1)
         g_table = None
         parts: dict[int, list[Tensor]] = {k: [] for k in range(1, 5) if need[k]}
         for sl in _chunks(M, Ku * Kv, C):
