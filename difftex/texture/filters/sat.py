@@ -77,11 +77,17 @@ def summed_area_table(texture: Tensor) -> Tensor:
     return S.cumsum_(-2).cumsum_(-1)
 
 
-def _suffix_sum(x: Tensor, dim: int) -> Tensor:
-    """Inclusive sums from each entry to the end of ``dim``: the total minus the prefix before the entry
-    (no reversed copies; float64 keeps the difference exact enough)."""
-    prefix = x.cumsum(dim)
-    return prefix.narrow(dim, x.shape[dim] - 1, 1) - prefix + x
+def _suffix_sums(g: Tensor) -> Tensor:
+    """``out[r, c] = sum_{b > r, a > c} g[b, a]`` of a contiguous [..., H + 1, W + 1] buffer (consumed) -> [..., H, W].
+
+    Per axis the sum past index i is the total minus the prefix up to i: one
+    in-place cumsum and one subtraction, on contiguous rows (no reversed
+    copies; float64 keeps the difference exact enough).
+    """
+    p = g.cumsum_(-1)
+    after = p[..., -1:] - p[..., :-1]  # [..., H + 1, W]: the sums past each column
+    q = after.cumsum_(-2)
+    return q[..., -1:, :] - q[..., :-1, :]
 
 
 def _grid(pu: Tensor, pv: Tensor, height: int, width: int) -> Tensor:
@@ -194,9 +200,8 @@ class _BoxSums(torch.autograd.Function):
                     parts[4].append((g_coef * cu[sl].unsqueeze(1)).sum(2))
         grad_tex = None
         if g_table is not None:
-            # Adjoint of S[b, a] = sum_{r < b, c < a} f[r, c]: grad f[r, c] = sum_{b > r, a > c} grad S[b, a],
-            # the suffix sums of grad S[1:, 1:] along both axes (the first row and column feed no texel).
-            grad_tex = _suffix_sum(_suffix_sum(g_table[..., 1:, 1:], -1), -2).to(texture.dtype)
+            # Adjoint of S[b, a] = sum_{r < b, c < a} f[r, c]: grad f[r, c] = sum_{b > r, a > c} grad S[b, a].
+            grad_tex = _suffix_sums(g_table).to(texture.dtype)
         return (grad_tex, *(torch.cat(parts[k]) if need[k] else None for k in range(1, 5)))
 
 
