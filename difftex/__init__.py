@@ -22,7 +22,7 @@ from .nn import TexturedMesh
 from . import shading
 from .shading import blinn_phong, bump, combine, displace, normal_map, tangent_frames
 from .texture import WRAP_MODES, Mipmap, levels_needed, lod, mipmap, sample
-from .texture import ambient_occlusion, bake, noise, sample3d
+from .texture import Ripmap, ambient_occlusion, bake, noise, ripmap, sample3d
 
 __all__ = [
     "backend", "camera", "envmap", "io", "mapping", "metrics",
@@ -36,4 +36,6 @@ __all__ = [
     "shading", "blinn_phong", "bump", "combine", "displace", "normal_map", "tangent_frames",
     # visibility (issue 16)
     "antialias", "composite", "depth_peel", "painter",
+    # ripmaps (issue 19)
+    "Ripmap", "ripmap",
 ]

@@ -131,6 +131,8 @@ PUBLIC = {
     "shading", "blinn_phong", "bump", "combine", "displace", "normal_map", "tangent_frames",
     # visibility (issue 16)
     "antialias", "composite", "depth_peel", "painter",
+    # ripmaps (issue 19)
+    "Ripmap", "ripmap",
 }
 
 

@@ -41,7 +41,8 @@ Filters:
   the taps follow the great circle of the major axis across any number of
   edges, and every tap reads its own face with a 1-texel gutter.
 * "ewa" is not supported (ValueError): its Gaussian reads whole texel
-  windows that a per-tap reprojection cannot redirect.
+  windows that a per-tap reprojection cannot redirect; nor are "ripmap"
+  and "sat", whose boxes are aligned with one face's axes.
 
 Approximations (measured in tests/envmap/test_cube.py):
 
@@ -89,6 +90,8 @@ from .directions import cube_to_direction, direction_to_cube
 #: blends with the neighbouring face's (see ``_log2_length``).
 EDGE_BAND = 0.25
 
+#: Filters of ``difftex.sample`` that cubemap rejects (module docstring).
+_UNSUPPORTED = ("ewa", "ripmap", "sat")
 #: Gutter width (texels) each single-level filter needs: its taps reach this far past a face edge.
 GUTTER = {"nearest": 1, "bilinear": 1, "bicubic": 2}
 
@@ -241,7 +244,8 @@ def cubemap(
             direction matters). B = 1 broadcasts.
         filter: "nearest", "bilinear", "bicubic", or the mip filters
             "trilinear", "nearest-mip", "anisotropic", "auto" (as in
-            ``difftex.sample``; "ewa" is not supported). See the module
+            ``difftex.sample``; "ewa", "ripmap" and "sat" are not
+            supported). See the module
             docstring for how each crosses the cube edges.
         dirs_dx, dirs_dy: [B, H, W, 3] d(dirs) / d(pixel column / row), in
             the units of ``dirs`` (the length of dirs may vary; only the
@@ -271,9 +275,11 @@ def cubemap(
     check_float("dirs", dirs, 4, last=3, shape_doc="[B, H, W, 3]")
     check_same("dirs", dirs, "cube", base)
     check_filter(filter)
-    if filter == "ewa":
-        raise ValueError("filter: 'ewa' is not supported by cubemap (its texel windows cannot cross cube edges); "
-                         f"expected one of {tuple(SEPARABLE) + tuple(f for f in MIP_FILTERS if f != 'ewa')}")
+    if filter in _UNSUPPORTED:
+        # EWA's texel windows, the ripmap's and the summed-area table's face-aligned boxes cannot cross cube edges.
+        ok = tuple(SEPARABLE) + tuple(f for f in MIP_FILTERS if f not in _UNSUPPORTED)
+        raise ValueError(f"filter: {filter!r} is not supported by cubemap (its texel windows cannot cross cube "
+                         f"edges); expected one of {ok}")
     max_aniso = check_number("max_aniso", max_aniso, 1, MAX_ANISO)
     tolerance = check_number("tolerance", tolerance, 0)
     Bt, _, C, S, _ = base.shape

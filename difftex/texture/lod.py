@@ -2,12 +2,13 @@
 
 A pixel's footprint in the texture is the image of the unit pixel under the
 Jacobian ``J = [uv_dx * (W, H), uv_dy * (W, H)]`` (columns: texels per pixel
-column / row of level 0). The mip filters read it three ways:
+column / row of level 0). The filters read it four ways:
 
 * trilinear: ``L = max(|J e_x|, |J e_y|)`` (the seed formula);
 * anisotropic: the major axis of the ellipse ``J J^T`` and the number of taps
   along it;
 * EWA: the ellipse itself, its minor axis choosing the level.
+* ripmap and summed-area table: the axis-aligned bounding box (``log2_extents``), one level per axis.
 
 and all turn a length into a level with the same ``level()``:
 ``D = clamp(log2(length) + lod_bias, 0, levels - 1)``.
@@ -175,6 +176,19 @@ def ellipse(fp: Footprint) -> Ellipse:
     direction = torch.stack((torch.cos(theta), torch.sin(theta)), -1)
     return Ellipse(major, minor, _log2_len2(major * major, fp), _log2_len2(minor * minor, fp), direction,
                    torch.stack((a, b, c), -1))
+
+
+def log2_extents(fp: Footprint) -> Tensor:
+    """log2 of the footprint's axis-aligned bounding box: [..., 2], width along u and height along v, level-0 texels.
+
+    The box of the parallelogram ``J [-1/2, 1/2]^2`` (the filters' pixel
+    footprint) is ``|J_u0| + |J_u1|`` texels wide along u, likewise along v;
+    the ripmap and summed-area filters read it (axis-aligned extents). A
+    zero side (a footprint flat along that axis) and a zero / NaN footprint
+    give ``-FAR`` (level 0), an infinite one ``+FAR``, with zero gradient.
+    """
+    ext = fp.p.abs() + fp.q.abs()  # scaled by the footprint's s: every entry <= 2
+    return torch.stack((_log2_len2(ext[..., 0] * ext[..., 0], fp), _log2_len2(ext[..., 1] * ext[..., 1], fp)), -1)
 
 
 def level(log2_len: Tensor, lod_bias: Tensor | float, levels: int) -> Tensor:

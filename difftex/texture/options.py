@@ -11,8 +11,10 @@ from .._checks import check_float, check_same, describe
 
 # Filters that read one texture level; the value is the per-axis kernel.
 SEPARABLE = {"nearest": "nearest", "bilinear": "linear", "bicubic": "cubic"}
-# Filters that read a mip pyramid and need uv_dx / uv_dy.
-MIP_FILTERS = ("trilinear", "nearest-mip", "anisotropic", "ewa", "auto")
+# Filters that read a prefiltered texture (mip pyramid, ripmap, summed-area table) and need uv_dx / uv_dy.
+MIP_FILTERS = ("trilinear", "nearest-mip", "anisotropic", "ewa", "auto", "ripmap", "sat")
+# Of those, the ones filtering the footprint's axis-aligned box (filters/ripmap.py, filters/sat.py).
+BOX_FILTERS = ("ripmap", "sat")
 # Default of ``tolerance`` ("auto"): within 0.5 dB of anisotropic 16 on every
 # scene of experiments/studies/speed_vs_accuracy.py (filters/auto.py).
 DEFAULT_TOLERANCE = 0.1

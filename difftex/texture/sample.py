@@ -9,19 +9,22 @@ from torch import Tensor
 
 from .._checks import broadcast_batch, check_float, check_same, describe
 from .filters.ewa import ewa_points
+from .filters.ripmap import ripmap_points
+from .filters.sat import sat_points
 from .filters.separable import separable_sample
 from .filters.trilinear import Levels, TexturePyramid, trilinear_points
 from .lod import ellipse, footprint
-from .options import (DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_bias, check_filter,
+from .options import (BOX_FILTERS, DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_bias, check_filter,
                       check_number)
 from .pyramid.mipmap import Mipmap, level_count, mipmap
+from .pyramid.ripmap import Ripmap
 from .taps import levels_read, taps
 from .wrap import Wrap, parse_wrap
 
 
 
 def sample(
-    texture: Union[Tensor, Mipmap],
+    texture: Union[Tensor, Mipmap, Ripmap],
     uv: Tensor,
     *,
     filter: str = "bilinear",
@@ -36,11 +39,13 @@ def sample(
     """Sample a texture at uv coordinates.
 
     Args:
-        texture: [B, C, H, W] float tensor, or a Mipmap (``difftex.mipmap``);
-            B = 1 broadcasts over the uv batch. The single-level filters read
-            a Mipmap's level 0; the mip filters build the pyramid of a plain
-            tensor on the fly (differentiably; trilinear, nearest-mip,
-            anisotropic and auto only as deep as the points read).
+        texture: [B, C, H, W] float tensor, or a Mipmap (``difftex.mipmap``)
+            or a Ripmap (``difftex.ripmap``); B = 1 broadcasts over the uv
+            batch. The single-level filters and "sat" read the base level of
+            either, "ripmap" a Ripmap's levels (a Mipmap's base), the other
+            mip filters a Ripmap's diagonal; the mip filters build the
+            pyramid of a plain tensor on the fly (differentiably; all but
+            ewa only as deep as the points read).
         uv: [B, Ho, Wo, 2]; (0, 0) is the top-left corner of texel (0, 0),
             (1, 1) the bottom-right corner of the last texel; u runs along the
             width, v along the rows (DESIGN.md). ``grid_sample`` with
@@ -52,12 +57,18 @@ def sample(
             footprint vector in texels, blend of floor(D) and floor(D) + 1),
             "nearest-mip" (bilinear at level round(D)), "anisotropic" (up to
             max_aniso trilinear taps along the footprint's major axis),
-            "ewa" (Gaussian elliptical weighted average, pbrt-v4 style) and
+            "ewa" (Gaussian elliptical weighted average, pbrt-v4 style),
             "auto" (per pixel the cheapest that ``tolerance`` allows: one
             bilinear tap on level 0 where the footprint is under half a
             texel, one trilinear tap where
             the footprint is nearly round, else anisotropic with just enough
-            taps). See ``difftex.filters`` for each.
+            taps), and two filters of the footprint's axis-aligned bounding
+            box: "ripmap" (a level per axis, ``D_u = log2 w_u + lod_bias``,
+            ``w_u`` the box's width in texels, likewise along v; bilinear
+            reads of four levels blended) and "sat" (the exact box average
+            over the box scaled by ``2^lod_bias``, at least one texel and
+            at most one period wide per axis, from a summed-area table).
+            See ``difftex.texture.filters`` for each.
         wrap: "repeat" | "clamp" | "mirror" | "border", one for both axes or a
             pair (wrap_u, wrap_v).
         border_value: the constant that "border" reads outside the texture
@@ -95,6 +106,11 @@ def sample(
     or a ``border_value`` that is not a number.
     """
     pyramid = None
+    if isinstance(texture, Ripmap):
+        if filter == "ripmap":
+            pyramid = texture
+        # The other mip filters read its diagonal, the mip chain (then validated as a Mipmap below).
+        texture = texture.mipmap() if filter in MIP_FILTERS and filter not in BOX_FILTERS else texture.base
     if isinstance(texture, Mipmap):
         pyramid = mipmap(list(texture.levels))  # re-validates user-built levels
         texture = pyramid.levels[0]
@@ -160,7 +176,8 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
     builds none): by the reading node of the bilinear-tap filters
     (``TexturePyramid``), here for EWA, which reads the full chain.
     """
-    base = pyramid.levels[0] if isinstance(pyramid, Mipmap) else pyramid
+    base = pyramid.levels[0] if isinstance(pyramid, Mipmap) else pyramid.base if isinstance(pyramid, Ripmap) \
+        else pyramid
     Bt, C, H, W = base.shape
     _, Ho, Wo, _ = uv.shape
     P = Ho * Wo
@@ -168,6 +185,17 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
     pts, dx, dy = flat(uv), flat(uv_dx), flat(uv_dy)
     if isinstance(bias, Tensor):
         bias = flat(bias) if bias.dim() == 3 else bias
+    if filter in BOX_FILTERS:
+        # Their own pyramid (a ripmap, built by ripmap_points where not given) or table, per texture.
+        src = pyramid if filter == "ripmap" and isinstance(pyramid, Ripmap) else base
+        read = ripmap_points if filter == "ripmap" else sat_points
+
+        def run_box(s: Union[Tensor, Ripmap], sl: slice) -> Tensor:
+            b = bias[sl] if isinstance(bias, Tensor) and bias.dim() == 1 else bias
+            return read(s, pts[sl], dx[sl], dy[sl], b, wrap_u, wrap_v, border)
+
+        return _per_texture(run_box, lambda i: src if i is None else src.select(i) if isinstance(src, Ripmap)
+                            else src[i:i + 1], Bt, B, C, Ho, Wo)
     n_levels = len(pyramid.levels) if isinstance(pyramid, Mipmap) else level_count(H, W)
     levels = pyramid.levels if isinstance(pyramid, Mipmap) else None
     if filter == "ewa":
@@ -197,8 +225,14 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
             return TexturePyramid(base if i is None else base[i:i + 1], n_levels)
         return levels if i is None else [lv[i:i + 1] for lv in levels]
 
+    return _per_texture(run, levels_of, Bt, B, C, Ho, Wo)
+
+
+def _per_texture(run, source_of, Bt: int, B: int, C: int, Ho: int, Wo: int) -> Tensor:
+    """``run(source_of(i), points of view i)`` -> [C, points], per texture, as [B, C, Ho, Wo]."""
+    P = Ho * Wo
     if Bt == 1:
         # One texture for every view: all points in one flat list.
-        return run(levels_of(None), slice(None)).view(C, B, Ho, Wo).transpose(0, 1)
-    outs = [run(levels_of(i), slice(i * P, (i + 1) * P)) for i in range(B)]
+        return run(source_of(None), slice(None)).view(C, B, Ho, Wo).transpose(0, 1)
+    outs = [run(source_of(i), slice(i * P, (i + 1) * P)) for i in range(B)]
     return torch.stack(outs).view(B, C, Ho, Wo)

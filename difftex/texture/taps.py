@@ -12,7 +12,7 @@ from . import native
 from .filters.anisotropic import anisotropic_taps, tap_count
 from .filters.auto import auto_tap_count
 from .lod import check_lod_bias, ellipse, footprint, level, log2_length, size_and_levels
-from .options import DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, check_filter, check_number
+from .options import BOX_FILTERS, DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, check_filter, check_number
 from .pyramid.mipmap import level_count
 
 
@@ -75,7 +75,8 @@ def levels_needed(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Te
         lod_bias: as in ``sample``: a number or [B, Ho, Wo].
         max_aniso, tolerance: as in ``sample`` (tolerance: "auto" only;
             default sample's).
-        filter: any filter of ``sample``; the single-level ones need 1.
+        filter: any filter of ``sample``; the single-level ones, "ripmap"
+            and "sat" need 1 (they read a Mipmap's level 0).
 
     Returns:
         int in ``[1, full chain]``: 1 + the coarsest level any pixel reads
@@ -105,8 +106,8 @@ def levels_needed(uv_dx: Tensor, uv_dy: Tensor, texture_size: Sequence[int] | Te
     sizes = [uv_dx.shape[0], uv_dy.shape[0]] + ([lod_bias.shape[0]] if isinstance(lod_bias, Tensor) and
                                                 lod_bias.dim() == 3 else [])
     broadcast_batch(["uv_dx", "uv_dy", "lod_bias"][:len(sizes)], sizes)
-    if filter not in MIP_FILTERS or full == 1:
-        return 1
+    if filter not in MIP_FILTERS or filter in BOX_FILTERS or full == 1:
+        return 1  # the box filters read a Mipmap's level 0 (and build their own ripmap / table)
     with torch.no_grad():
         bias = lod_bias.detach() if isinstance(lod_bias, Tensor) else float(lod_bias)
         B = max(uv_dx.shape[0], uv_dy.shape[0], bias.shape[0] if isinstance(bias, Tensor) and bias.dim() else 1)

@@ -26,8 +26,8 @@ scored on the pixels that every supersampling rate covers fully (silhouette
 anti-aliasing is not what is measured).
 
 Methods: difftex nearest / bilinear / bicubic (level 0), trilinear,
-anisotropic (max_aniso 2, 4, 8, 16), EWA, and "auto" where the installed
-difftex has it; peers: ``F.grid_sample`` bilinear at one sample a pixel and
+anisotropic (max_aniso 2, 4, 8, 16), EWA, and "auto", "ripmap" and "sat"
+where the installed difftex has them; peers: ``F.grid_sample`` bilinear at one sample a pixel and
 at 2x2, 4x4 and 8x8 supersampled uv (box-averaged), and kornia's
 ``remap(normalized_coordinates=True, align_corners=False)``.  The peers have
 no repeat mode: along a repeating axis the texture is padded by one texel
@@ -93,12 +93,13 @@ except Exception:  # pragma: no cover - depends on the environment
 
 
 def method_names(ss_rates=(2, 4, 8)) -> list[str]:
-    """Every method of the experiment; "auto" only where difftex.sample has it."""
+    """Every method of the experiment; "auto", "ripmap" and "sat" only where difftex.sample has them."""
     names = ["nearest", "bilinear", "bicubic", "trilinear"]
     names += [f"anisotropic-{a}" for a in (2, 4, 8, 16)]
     names += ["ewa"]
     if "auto" in getattr(_sample_mod, "FILTERS", ()):
         names.append("auto")
+    names += [f for f in ("ripmap", "sat") if f in getattr(_sample_mod, "FILTERS", ())]
     names += ["grid_sample"] + [f"grid_sample-ss{n}x{n}" for n in ss_rates] + ["kornia"]
     return names
 
@@ -109,7 +110,7 @@ def make_method(name: str, scene: Scene, tex: Tensor, uv: Tensor, uv_ss: dict[in
     dx, dy = scene.uv_dx, scene.uv_dy
     if name in ("nearest", "bilinear", "bicubic"):
         return lambda: difftex.sample(tex, uv, filter=name, wrap=w)
-    if name in ("trilinear", "ewa", "auto"):
+    if name in ("trilinear", "ewa", "auto", "ripmap", "sat"):
         return lambda: difftex.sample(tex, uv, filter=name, wrap=w, uv_dx=dx, uv_dy=dy)
     if name.startswith("anisotropic-"):
         a = int(name.split("-")[1])

@@ -32,7 +32,7 @@ Writes to ``--out`` (default results/stability) stability.png (one panel per
 sweep) and stability.md (a markdown table); ``--docs`` copies the chart to
 docs/images/stability.png.
 
-    python -m experiments.studies.stability [--threads 1] [--out results/stability]
+    python -m experiments.studies.stability [--threads 1] [--out results/stability] [--small]
 """
 from __future__ import annotations
 
@@ -584,6 +584,8 @@ def main(argv: Optional[list[str]] = None) -> dict:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default="results/stability")
     ap.add_argument("--docs", action="store_true", help="also copy the chart to docs/images/stability.png")
+    ap.add_argument("--small", action="store_true", help="the sizes of tests/experiments/test_stability.py (a quick "
+                    "check; the charted numbers come from the defaults)")
     args = ap.parse_args(argv)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
@@ -593,9 +595,13 @@ def main(argv: Optional[list[str]] = None) -> dict:
     results = {}
     steps = (("view", sweep_view_angle), ("minify", sweep_minification), ("offset", sweep_uv_offset),
              ("seam", sphere_seam), ("shapes", texture_shapes), ("bad", bad_derivatives), ("mesh", degenerate_mesh))
+    small = dict(view=dict(angles=(0, 80, 89, 89.9), res=16, tex_size=64),
+                 minify=dict(factors=(0.5, 1, 16, 64, 1000), res=16, tex_size=64),
+                 offset=dict(offsets=(0, 1e3, 1e6), res=12, tex_size=64), seam=dict(res=32, tex_size=128, ss=8),
+                 shapes=dict(n=32, wraps=("repeat", "mirror")))
     for name, fn in steps:
         t = time.perf_counter()
-        results[name] = fn()
+        results[name] = fn(**(small.get(name, {}) if args.small else {}))
         print(f"{name}: {time.perf_counter() - t:.1f} s", flush=True)
     lines = ["| filter | min PSNR view sweep (angle) | PSNR at 89.9 | max err minification (factor) | err at 1000x "
              "| float32 err at 1e6 | float32 excess at 1e6 | float64 err at 1e6 | seam err / rest (analytic) "

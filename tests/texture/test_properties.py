@@ -17,7 +17,7 @@ from difftex import WRAP_MODES
 from difftex.texture.options import FILTERS
 
 # Outputs are convex combinations of texels (and the border constant): all but bicubic.
-CONVEX = ("nearest", "bilinear", "trilinear", "nearest-mip", "anisotropic", "ewa", "auto")
+CONVEX = ("nearest", "bilinear", "trilinear", "nearest-mip", "anisotropic", "ewa", "auto", "ripmap", "sat")
 SETTINGS = dict(deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow],
                 print_blob=True)
 
