@@ -220,7 +220,7 @@ class _Atlas(torch.autograd.Function):
         faces = level.transpose(1, 2)
         atlas[..., g:g + n, g:g + n] = faces
         gutter = (faces[:, :, face, row, col] * w).sum(-1)  # [B, C, K]
-        atlas.view(B, C, 6 * P * P)[:, :, pos] = gutter
+        atlas.view(B, C, 6 * P * P).index_copy_(2, pos, gutter)
         return atlas.view(B, C, 6 * P, P)
 
     @staticmethod
@@ -229,7 +229,7 @@ class _Atlas(torch.autograd.Function):
         B, C = grad.shape[:2]
         P = n + 2 * g
         planes = grad.reshape(B, C, 6, P, P)[..., g:g + n, g:g + n].reshape(B, C, 6 * n * n)  # a fresh copy
-        gutter = grad.reshape(B, C, 6 * P * P)[:, :, pos]  # [B, C, K]
+        gutter = grad.reshape(B, C, 6 * P * P).index_select(2, pos)  # [B, C, K]
         planes = planes.index_add(2, lin, (gutter.unsqueeze(-1) * w).reshape(B, C, -1))
         return planes.view(B, C, 6, n, n).transpose(1, 2), None
 
