@@ -100,7 +100,25 @@ class CubeMipmap(Pyramid):
     the faces. The levels are ordinary tensors in the autograd graph.
     """
 
-    __slots__ = ()
+    __slots__ = ("_atlases",)
+
+    def __init__(self, levels: Sequence[Tensor]):
+        super().__init__(levels)
+        self._atlases: dict = {}
+
+    def atlas(self, k: int, g: int) -> Tensor:
+        """Level k as the gutter atlas [B, C, 6 P, P] of gutter g; built once and kept while no gradient is
+        recorded through it (a level that requires grad under grad mode is rebuilt each call, in the graph)."""
+        level = self.levels[k]
+        if torch.is_grad_enabled() and level.requires_grad:
+            return _atlas(level, g)
+        key = (k, g)
+        hit = self._atlases.get(key)
+        # The level itself (so a replaced level is noticed) and its version (so an in-place change is).
+        if hit is None or hit[0] is not level or hit[1] != level._version:
+            with torch.no_grad():
+                hit = self._atlases[key] = (level, level._version, _atlas(level, g))
+        return hit[2]
 
     def __repr__(self) -> str:
         B, _, C = self.levels[0].shape[:3]
@@ -359,7 +377,7 @@ def cubemap(
                    max_aniso, tolerance)
     else:
         g = GUTTER[filter]
-        atlas = _atlas(base if pyramid is None else pyramid.levels[0], g)
+        atlas = _atlas(base, g) if pyramid is None else pyramid.atlas(0, g)
         out = sample(atlas, _atlas_uv(face, uv, S, g), filter=filter, wrap="clamp")
     if clean:
         return out
@@ -487,7 +505,8 @@ def _check_levels(pyramid: CubeMipmap) -> None:
 def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tensor, uv_dy: Tensor,
          log2_len: Optional[Tensor], bias: Union[float, Tensor], B: int, filter: str, max_aniso: float, tolerance: float) -> Tensor:
     """The mip filters on flat point lists: difftex's level front end, one atlas per level read."""
-    levels = (cube if isinstance(cube, CubeMipmap) else cube_mipmap(cube)).levels
+    pyramid = cube if isinstance(cube, CubeMipmap) else cube_mipmap(cube)
+    levels = pyramid.levels
     Bt, _, C, S, _ = levels[0].shape
     _, H, W, _ = uv.shape
     P = H * W
@@ -514,10 +533,10 @@ def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tenso
 
     def run(b: Optional[int], sl: slice) -> Tensor:
         def read_one(k: int, xs: list[Tensor]) -> Tensor:
-            lv = levels[k] if b is None else levels[k][b:b + 1]
-            n = lv.shape[-1]
+            n = levels[k].shape[-1]
             at = _atlas_uv(xs[0][:, 2], xs[0][:, :2], n, 1)
-            return separable_sample(_atlas(lv, 1), at.unsqueeze(0), "linear", "clamp", "clamp")[0]
+            atlas = pyramid.atlas(k, 1) if b is None else _atlas(levels[k][b:b + 1], 1)
+            return separable_sample(atlas, at.unsqueeze(0), "linear", "clamp", "clamp")[0]
         return mip_blend(D[sl], L, [x[sl]], per_level(read_one), nearest=nearest)
 
     if Bt == 1:

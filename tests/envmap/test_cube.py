@@ -484,3 +484,21 @@ def test_cube_to_equirect_gradient_and_bad_size():
         difftex.envmap.cube_to_equirect(cube, 8)
     with pytest.raises(ValueError, match=r"size: expected \(H, W\) ints >= 1, got \(0, 4\)"):
         difftex.envmap.cube_to_equirect(cube, (0, 4))
+
+
+def test_cube_mipmap_keeps_its_atlases_without_grad():
+    cube, d = grad_inputs(S=8)
+    dx, dy = tangent_derivs(d.detach(), 0.5)
+    mm = cube_mipmap(cube.detach().clone())
+    first = cubemap(mm, d.detach(), filter="trilinear", dirs_dx=dx, dirs_dy=dy)
+    kept = dict(mm._atlases)
+    assert kept and all(v[2] is mm._atlases[k][2] for k, v in kept.items())
+    again = cubemap(mm, d.detach(), filter="trilinear", dirs_dx=dx, dirs_dy=dy)
+    assert torch.equal(first, again) and all(v[2] is mm._atlases[k][2] for k, v in kept.items())
+    # An in-place change of a level is seen (rebuilt), and values follow it.
+    mm.levels[0].add_(1.0)
+    assert torch.equal(cubemap(mm, d.detach()), cubemap(mm.levels[0], d.detach()))
+    # Under grad mode a level that requires grad is read in the graph, every call.
+    ref = cube_mipmap(cube)
+    out = cubemap(ref, d.detach(), filter="trilinear", dirs_dx=dx, dirs_dy=dy)
+    assert not ref._atlases and out.requires_grad
