@@ -7,7 +7,8 @@ the 2D reference is ``difftex.sample`` (wrap "clamp") on a [1, 3, S, 6 S]
 texture (the same texels) at N x N uv of a view scaled so that a pixel covers
 about as many texels as on the cube (the same mip levels). Bilinear and
 trilinear, forward and forward + backward (gradients to the texels and the
-directions / uv). The two are timed interleaved (difftex.testing.timing,
+directions / uv); forward also from prebuilt pyramids (``cube_mipmap``, which
+keeps its gutter atlases, against ``difftex.mipmap``). The two are timed interleaved (difftex.testing.timing,
 a pause before every call), so a load spike on a shared machine hits both;
 the ratio is the median of the per-round ratios.
 
@@ -23,7 +24,7 @@ import math
 import torch
 
 import difftex
-from difftex.envmap import cubemap
+from difftex.envmap import cube_mipmap, cubemap
 from difftex.testing import time_interleaved
 
 
@@ -82,10 +83,22 @@ def run(size: int, res: int, repeats: int, filters=("bilinear", "trilinear")) ->
                     if grad:
                         out.backward(torch.ones_like(out))
 
-            a, b = time_interleaved([cube_step, tex_step], repeats, pause=0.05, shuffle=True)
-            rows.append(f"| {filt} | {label} | {a.median:.1f} ({a.spread:.1f}) | {b.median:.1f} ({b.spread:.1f}) "
-                        f"| {a.ratio_to(b):.2f} |")
-            print(rows[-1], flush=True)
+            fns = [cube_step, tex_step]
+            if not grad:
+                # The same lookups from prebuilt pyramids (a CubeMipmap keeps its atlases between calls).
+                mm, tm = cube_mipmap(cube), difftex.mipmap(tex)
+
+                def cube_pre():
+                    cubemap(mm, d, filter=filt, **(dict(dirs_dx=ddx, dirs_dy=ddy) if mip else {}))
+
+                def tex_pre():
+                    difftex.sample(tm, uv, filter=filt, wrap="clamp", **(dict(uv_dx=udx, uv_dy=udy) if mip else {}))
+                fns += [cube_pre, tex_pre]
+            times = time_interleaved(fns, repeats, pause=0.05, shuffle=True)
+            for (a, b), what in zip((times[:2], times[2:]) if len(times) > 2 else (times,), ("", ", prebuilt pyramid")):
+                rows.append(f"| {filt} | {label}{what} | {a.median:.1f} ({a.spread:.1f}) | {b.median:.1f} "
+                            f"({b.spread:.1f}) | {a.ratio_to(b):.2f} |")
+                print(rows[-1], flush=True)
     return rows
 
 
