@@ -63,10 +63,16 @@ Approximations (measured in tests/envmap/test_cube.py):
   meet along the same edges as the fine ones); odd sizes use difftex's
   area-weighted box within each face.
 
-Cost (CPU, 256^2 faces, 256^2 directions, forward + backward): bilinear
-21 ms, trilinear 70 ms, anisotropic 148 ms, against 3.7 / 21 / 57 ms for
-``difftex.sample`` on one 256^2 texture with as many points; the atlas
-(a padded copy of six faces) is most of the difference.
+Cost (``experiments/bench/bench_cubemap.py``: 6 x 256^2 cube, 512^2
+directions, against ``difftex.sample`` on a 2D texture of as many texels in
+the same run). The face pick is a handful of selects (``_face_coords``),
+the atlas one autograd node with a hand adjoint (``_Atlas``; a
+``CubeMipmap`` keeps its atlases where no gradient is recorded), bilinear
+one ``grid_sample`` on the atlas, and the edge blend of the level touches
+only the points in the bands. What is left is elementwise passes over the
+points (the direction maths, the level, the per-level reads), which
+``sample`` runs in one native pass: the ratio stays well above 1.5 (see the
+README's speed section for the figures).
 """
 from __future__ import annotations
 
