@@ -53,17 +53,27 @@ Approximations (measured in tests/envmap/test_cube.py):
   3-texel means. Bilinear is exactly continuous at the corners; bicubic's
   4 x 4 stencil is continuous across edges but not within 2 texels of a
   corner (jump 0.028 on uniform [0, 1) texels at S = 8).
-* "anisotropic" / "auto": the level, the tap count and spacing are the
-  centre face's per-face ones (no edge blend), so the value is continuous
-  in the texels it reads but the level may jump where the point crosses an
-  edge; past an edge the taps keep the centre face's spacing.
+* "anisotropic" / "auto": the level is blended across edges as trilinear's
+  (``_edge_blend``: along great circles the largest jump at a face change
+  drops from 0.079 to 0.045 on S = 8 noise), but the tap count and spacing
+  are the centre face's, so they may jump where the point crosses an edge;
+  past an edge the taps keep the centre face's spacing.
 * The pyramid's box filter is per face: a coarse texel next to an edge
-  averages only its own face's texels.
+  averages only its own face's texels. For even sizes this is exact (each
+  coarse texel is the mean of the 4 texels it covers, and the coarse faces
+  meet along the same edges as the fine ones); odd sizes use difftex's
+  area-weighted box within each face.
 
-Cost (CPU, 256^2 faces, 256^2 directions, forward + backward): bilinear
-21 ms, trilinear 70 ms, anisotropic 148 ms, against 3.7 / 21 / 57 ms for
-``difftex.sample`` on one 256^2 texture with as many points; the atlas
-(a padded copy of six faces) is most of the difference.
+Cost (``experiments/bench/bench_cubemap.py``: 6 x 256^2 cube, 512^2
+directions, against ``difftex.sample`` on a 2D texture of as many texels in
+the same run). The face pick is a handful of selects (``_face_coords``),
+the atlas one autograd node with a hand adjoint (``_Atlas``; a
+``CubeMipmap`` keeps its atlases where no gradient is recorded), bilinear
+one ``grid_sample`` on the atlas, and the edge blend of the level touches
+only the points in the bands. What is left is elementwise passes over the
+points (the direction maths, the level, the per-level reads), which
+``sample`` runs in one native pass: the ratio stays well above 1.5 (see the
+README's speed section for the figures).
 """
 from __future__ import annotations
 
@@ -84,7 +94,8 @@ from ..texture.lod import level, log2_length
 from ..texture.pyramid.mipmap import Pyramid, level_count, mipmap
 from ..texture.sample import sample
 from ..texture.taps import taps
-from .directions import cube_to_direction, direction_to_cube
+from ..backend import single_level
+from .directions import _face_coords, cube_to_direction, direction_to_cube
 
 #: Width, in [-1, 1] face coordinates, of the band along each edge over which the trilinear level
 #: blends with the neighbouring face's (see ``_log2_length``).
@@ -103,7 +114,25 @@ class CubeMipmap(Pyramid):
     the faces. The levels are ordinary tensors in the autograd graph.
     """
 
-    __slots__ = ()
+    __slots__ = ("_atlases",)
+
+    def __init__(self, levels: Sequence[Tensor]):
+        super().__init__(levels)
+        self._atlases: dict = {}
+
+    def atlas(self, k: int, g: int) -> Tensor:
+        """Level k as the gutter atlas [B, C, 6 P, P] of gutter g; built once and kept while no gradient is
+        recorded through it (a level that requires grad under grad mode is rebuilt each call, in the graph)."""
+        level = self.levels[k]
+        if torch.is_grad_enabled() and level.requires_grad:
+            return _atlas(level, g)
+        key = (k, g)
+        hit = self._atlases.get(key)
+        # The level itself (so a replaced level is noticed) and its version (so an in-place change is).
+        if hit is None or hit[0] is not level or hit[1] != level._version:
+            with torch.no_grad():
+                hit = self._atlases[key] = (level, level._version, _atlas(level, g))
+        return hit[2]
 
     def __repr__(self) -> str:
         B, _, C = self.levels[0].shape[:3]
@@ -192,21 +221,54 @@ def _gutter_table(n: int, g: int) -> tuple[Tensor, Tensor, Tensor]:
     return pos, torch.stack([a, b, c], -1), w
 
 
-def _atlas(level: Tensor, g: int) -> Tensor:
+@lru_cache(maxsize=64)
+def _gutter_gather(n: int, g: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """``_gutter_table`` as indices straight into a level's layout: (positions [K] in the flat [6, P, P]
+    atlas; face, row, col [K, 3] of the 3 texels read; their flat index [3 K] in [6, n, n]; weights [K, 3])."""
+    pos, idx, w = _gutter_table(n, g)
+    face, rc = idx // (n * n), idx % (n * n)
+    return pos, face, rc // n, rc % n, idx.reshape(-1), w
+
+
+class _Atlas(torch.autograd.Function):
     """[B, 6, C, n, n] -> [B, C, 6 P, P]: the faces with their gutters, stacked along the rows.
 
-    The faces are copied in by a zero padding and only the gutter texels
-    (about 4 g n per face) are gathered: a gather of every padded texel
-    costs ~20x more on the CPU (measured at n = 256).
+    The faces are copied in once and only the gutter texels (about 4 g n per
+    face) are gathered, 3 weighted texels each; the backward is the adjoint
+    (the gradient's face interiors plus the gutter gradients added back to
+    the texels they came from), in torch ops, so double backward works.
+    Padding and index_add under autograd cost several times more on the CPU
+    (measured at n = 256: transposed copies and zero fills each way).
     """
-    B, _, C, n, _ = level.shape
-    P = n + 2 * g
-    pos, idx, w = _gutter_table(n, g)
-    pos, idx, w = pos.to(level.device), idx.to(level.device), w.to(level.device, level.dtype)
-    faces = level.transpose(1, 2)  # [B, C, 6, n, n]
-    padded = torch.nn.functional.pad(faces, (g, g, g, g)).view(B, C, 6 * P * P)
-    picked = faces.reshape(B, C, 6 * n * n).index_select(-1, idx.reshape(-1)).view(B, C, -1, 3)
-    return padded.index_add(-1, pos, (picked * w).sum(-1)).view(B, C, 6 * P, P)
+
+    @staticmethod
+    def forward(ctx, level: Tensor, g: int) -> Tensor:
+        B, _, C, n, _ = level.shape
+        P = n + 2 * g
+        pos, face, row, col, lin, w = (t.to(level.device) for t in _gutter_gather(n, g))
+        w = w.to(level.dtype)
+        ctx.args = (n, g, pos, lin, w)
+        atlas = level.new_empty((B, C, 6, P, P))
+        faces = level.transpose(1, 2)
+        atlas[..., g:g + n, g:g + n] = faces
+        gutter = (faces[:, :, face, row, col] * w).sum(-1)  # [B, C, K]
+        atlas.view(B, C, 6 * P * P).index_copy_(2, pos, gutter)
+        return atlas.view(B, C, 6 * P, P)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        n, g, pos, lin, w = ctx.args
+        B, C = grad.shape[:2]
+        P = n + 2 * g
+        planes = grad.reshape(B, C, 6, P, P)[..., g:g + n, g:g + n].reshape(B, C, 6 * n * n)  # a fresh copy
+        gutter = grad.reshape(B, C, 6 * P * P).index_select(2, pos)  # [B, C, K]
+        planes = planes.index_add(2, lin, (gutter.unsqueeze(-1) * w).reshape(B, C, -1))
+        return planes.view(B, C, 6, n, n).transpose(1, 2), None
+
+
+def _atlas(level: Tensor, g: int) -> Tensor:
+    """[B, 6, C, n, n] -> [B, C, 6 P, P], P = n + 2 g: the faces with their gutters (``_Atlas``)."""
+    return _Atlas.apply(level, g)
 
 
 def _atlas_uv(face: Tensor, uv: Tensor, n: int, g: int) -> Tensor:
@@ -312,26 +374,64 @@ def cubemap(
 
     # Zero and non-finite directions read a safe direction (no NaN in any
     # backward, no gradient from them) and get their value put back at the end.
-    ok = torch.isfinite(dirs).all(-1)
-    zero = (dirs == 0).all(-1)
-    good = (ok & ~zero).unsqueeze(-1)
-    safe = torch.where(good, dirs, torch.tensor([1.0, 0.0, 0.0], dtype=dirs.dtype, device=dirs.device))
-    if derivs:
+    # One sum and one max say whether there is any (no per-point masks then).
+    clean = bool(torch.isfinite(dirs.detach().sum())) and bool(dirs.detach().abs().amax(-1).min() > 0)
+    if clean:
+        safe = dirs
+    else:
+        ok = torch.isfinite(dirs).all(-1)
+        zero = (dirs == 0).all(-1)
+        good = (ok & ~zero).unsqueeze(-1)
+        safe = torch.where(good, dirs, torch.tensor([1.0, 0.0, 0.0], dtype=dirs.dtype, device=dirs.device))
         derivs = [torch.where(good, d, 0.0) for d in derivs]
+    if filter == "bilinear" and single_level() == "grid_sample":
+        out = _bilinear(base if pyramid is None else pyramid, safe, B)
+        return out if clean else _put_back(out, ok, zero, B, H, W)
+    if derivs:
         face, uv, uv_dx, uv_dy = direction_to_cube(safe, dirs_dx=derivs[0], dirs_dy=derivs[1])
     else:
         face, uv = direction_to_cube(safe)
     if mip:
-        log2_len = _log2_length(safe, derivs, face, uv, S) if filter in ("trilinear", "nearest-mip") else None
+        log2_len = _log2_length(safe, derivs, face, uv, uv_dx, uv_dy, S) if filter in ("trilinear", "nearest-mip") else None
         out = _mip(pyramid if pyramid is not None else base, face, uv, uv_dx, uv_dy, log2_len, bias, B, filter,
-                   max_aniso, tolerance)
+                   max_aniso, tolerance, safe, derivs)
     else:
         g = GUTTER[filter]
-        atlas = _atlas(base if pyramid is None else pyramid.levels[0], g)
+        atlas = _atlas(base, g) if pyramid is None else pyramid.atlas(0, g)
         out = sample(atlas, _atlas_uv(face, uv, S, g), filter=filter, wrap="clamp")
+    return out if clean else _put_back(out, ok, zero, B, H, W)
+
+
+def _put_back(out: Tensor, ok: Tensor, zero: Tensor, B: int, H: int, W: int) -> Tensor:
+    """0 at the zero directions, NaN at the non-finite ones."""
     ok = ok.expand(B, H, W).unsqueeze(1)
     zero = zero.expand(B, H, W).unsqueeze(1)
     return torch.where(zero, 0.0, torch.where(ok, out, float("nan")))
+
+
+def _bilinear(cube: Union[Tensor, CubeMipmap], dirs: Tensor, B: int) -> Tensor:
+    """Bilinear on the atlas in one ``grid_sample`` (the grid_sample backend), from the face coordinates.
+
+    The atlas point of face f, (s, t) = (s_c, t_c) / m_a in [-1, 1], is
+    grid_sample's ``((n / P) s, (2 f + 1) / 6 - 1 + (n / 6 P) t)`` (P = n + 2g):
+    a few passes over the points where the face uv, the atlas uv and
+    ``sample``'s own wrap / finiteness passes took about five times as many
+    (on the CPU at 512^2 directions they cost more than the bilinear read).
+    ``sample(atlas, _atlas_uv(...), wrap="clamp")`` is the same read
+    (grid_sample's "border" padding is difftex's clamp), which the
+    reference backend runs.
+    """
+    n = cube.levels[0].shape[-1] if isinstance(cube, CubeMipmap) else cube.shape[-1]
+    P = n + 2
+    atlas = cube.atlas(0, 1) if isinstance(cube, CubeMipmap) else _atlas(cube, 1)
+    face, sc, tc, ma, _, _, _ = _face_coords(dirs, [])
+    inv = 1.0 / ma.clamp_min(EPS)
+    grid = torch.stack([sc * inv * (n / P), tc * inv * (n / (6 * P)) + (face.to(sc.dtype) / 3 - 5 / 6)], -1)
+    grid = grid.expand(B, *grid.shape[1:])
+    if atlas.shape[0] != B:
+        atlas = atlas.expand(B, *atlas.shape[1:])
+    return torch.nn.functional.grid_sample(atlas, grid.to(atlas.dtype), mode="bilinear", padding_mode="border",
+                                           align_corners=False)
 
 
 def cube_to_equirect(
@@ -396,31 +496,49 @@ def _face_derivs(dirs: Tensor, dds: list[Tensor], face: Tensor, use: Tensor) -> 
     return out
 
 
-def _log2_length(dirs: Tensor, dds: list[Tensor], face: Tensor, uv: Tensor, S: int) -> Tensor:
-    """[B, H, W] trilinear ``log2 L`` (face texels), continuous across the cube edges.
+def _edge_blend(own: Tensor, dirs: Tensor, dds: list[Tensor], face: Tensor, uv: Tensor, measure) -> Tensor:
+    """``own`` [M] (a per-face footprint measure: log2 length, or a level) blended with the neighbouring faces'.
 
     Each face measures a footprint on its own texel grid, and the grids of
     two faces are sheared against each other at their edge, so per-face
     levels jump there (as on GPUs). Within ``EDGE_BAND`` of an edge the
-    length is blended with the neighbouring face's (weights 1 at the edge,
-    0 at the band's inner side, the own face weight 1, normalised): at an
-    edge both faces give the mean of their two lengths, at a corner all
-    three give the mean of three, so the level is continuous everywhere.
+    value is blended with ``measure(uv_dx, uv_dy, idx)``, the same measure of
+    the footprint projected on the neighbouring face, at the points ``idx``
+    (weights 1 at the edge, 0 at the band's inner side, the own face weight
+    1, normalised): at an edge both faces give the mean of their two values,
+    at a corner all three give the mean of three, so the value is
+    continuous everywhere. Flat inputs: dirs, dds [M, 3], face [M], uv [M, 2].
+    Only the points in a band (about a quarter per axis) measure twice.
     """
-    s, t = 2 * uv[..., 0] - 1, 2 * uv[..., 1] - 1
-    sc_ax, sc_sg, tc_ax, tc_sg, _, _ = cube_tables(face)
-    out = log2_length(*_face_derivs(dirs, dds, face, torch.ones_like(face, dtype=torch.bool)), S, S)
-    num, den = out, torch.ones_like(out)
-    for c, ax, sg in ((s, sc_ax, sc_sg), (t, tc_ax, tc_sg)):
+    num, den = own, torch.ones_like(own)
+    for axis in (0, 1):
+        c = 2 * uv[:, axis] - 1
         w = (1 - (1 - c.abs()) / EDGE_BAND).clamp(0, 1)
-        use = w.detach() > 0
-        if not bool(use.any()):
+        idx = (w.detach() > 0).nonzero().squeeze(1)
+        if idx.numel() == 0:
             continue
-        nface = 2 * ax + ((c * sg.to(c.dtype)) < 0).long()
-        other = log2_length(*_face_derivs(dirs, dds, nface, use), S, S)
-        num = num + w * torch.where(use, other, 0.0)
-        den = den + w
+        tabs = cube_tables(face.index_select(0, idx))
+        ax, sg = tabs[2 * axis], tabs[2 * axis + 1]
+        nface = 2 * ax + ((c.index_select(0, idx) * sg.to(c.dtype)) < 0).long()
+        # On the band the neighbour's axis component is > 0.75 m_a: its projection is finite.
+        nd = _face_derivs(dirs.index_select(0, idx), [d.index_select(0, idx) for d in dds], nface,
+                          torch.ones_like(nface, dtype=torch.bool))
+        wi = w.index_select(0, idx)
+        num = num.index_add(0, idx, wi * measure(nd[0], nd[1], idx))
+        den = den.index_add(0, idx, wi)
     return num / den
+
+
+def _log2_length(dirs: Tensor, dds: list[Tensor], face: Tensor, uv: Tensor, uv_dx: Tensor, uv_dy: Tensor,
+                 S: int) -> Tensor:
+    """[B, H, W] trilinear ``log2 L`` (face texels), continuous across the cube edges (``_edge_blend``)."""
+    shape = torch.broadcast_shapes(dirs.shape, *(d.shape for d in dds))  # dirs and derivatives may broadcast
+    flat3 = lambda t: t.expand(shape).reshape(-1, 3)
+    flat2 = lambda t: t.expand(*shape[:-1], 2).reshape(-1, 2)
+    own = log2_length(flat2(uv_dx), flat2(uv_dy), S, S)
+    out = _edge_blend(own, flat3(dirs), [flat3(d) for d in dds], face.expand(shape[:-1]).reshape(-1), flat2(uv),
+                      lambda dx, dy, idx: log2_length(dx, dy, S, S))
+    return out.view(shape[:-1])
 
 
 def _check_levels(pyramid: CubeMipmap) -> None:
@@ -439,9 +557,11 @@ def _check_levels(pyramid: CubeMipmap) -> None:
 
 
 def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tensor, uv_dy: Tensor,
-         log2_len: Optional[Tensor], bias: Union[float, Tensor], B: int, filter: str, max_aniso: float, tolerance: float) -> Tensor:
+         log2_len: Optional[Tensor], bias: Union[float, Tensor], B: int, filter: str, max_aniso: float, tolerance: float,
+         dirs: Tensor, dds: list[Tensor]) -> Tensor:
     """The mip filters on flat point lists: difftex's level front end, one atlas per level read."""
-    levels = (cube if isinstance(cube, CubeMipmap) else cube_mipmap(cube)).levels
+    pyramid = cube if isinstance(cube, CubeMipmap) else cube_mipmap(cube)
+    levels = pyramid.levels
     Bt, _, C, S, _ = levels[0].shape
     _, H, W, _ = uv.shape
     P = H * W
@@ -454,6 +574,10 @@ def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tenso
         D, axis, count = level(flat(log2_len.unsqueeze(-1)).squeeze(-1), bias, L), None, None
     else:
         D, axis, count = taps(filter, dx, dy, bias, S, S, L, max_aniso, tolerance)
+        # The level, continuous across edges as trilinear's; the tap count and axis stay the own face's.
+        sub = lambda t, idx: t.index_select(0, idx) if isinstance(t, Tensor) and t.dim() == 1 else t
+        D = _edge_blend(D, flat(dirs), [flat(d) for d in dds], fc, pts,
+                        lambda a, b, idx: taps(filter, a, b, sub(bias, idx), S, S, L, max_aniso, tolerance)[0])
     nearest = filter == "nearest-mip"
     point = None
     if count is not None:
@@ -468,10 +592,10 @@ def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tenso
 
     def run(b: Optional[int], sl: slice) -> Tensor:
         def read_one(k: int, xs: list[Tensor]) -> Tensor:
-            lv = levels[k] if b is None else levels[k][b:b + 1]
-            n = lv.shape[-1]
+            n = levels[k].shape[-1]
             at = _atlas_uv(xs[0][:, 2], xs[0][:, :2], n, 1)
-            return separable_sample(_atlas(lv, 1), at.unsqueeze(0), "linear", "clamp", "clamp")[0]
+            atlas = pyramid.atlas(k, 1) if b is None else _atlas(levels[k][b:b + 1], 1)
+            return separable_sample(atlas, at.unsqueeze(0), "linear", "clamp", "clamp")[0]
         return mip_blend(D[sl], L, [x[sl]], per_level(read_one), nearest=nearest)
 
     if Bt == 1:

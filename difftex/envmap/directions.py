@@ -11,7 +11,7 @@ from typing import Optional
 import torch
 
 from ..mapping.common import (
-    EPS, UVResult, check_derivs, check_tensor, cube_tables, major_face, pick, result, sphere_uv,
+    EPS, UVResult, check_derivs, check_tensor, cube_tables, result, sphere_uv,
 )
 
 
@@ -97,21 +97,43 @@ def direction_to_cube(dirs: torch.Tensor, *,
     """
     dirs = check_tensor(dirs, "dirs", 3)
     dds = check_derivs(dirs_dx, dirs_dy, "dirs", 3, dirs)
-    face = major_face(dirs)
-    sc_ax, sc_sg, tc_ax, tc_sg, ma_ax, ma_sg = cube_tables(face)
-    sc_sg, tc_sg, ma_sg = (t.to(dirs.dtype) for t in (sc_sg, tc_sg, ma_sg))
-    sc = sc_sg * pick(dirs, sc_ax)
-    tc = tc_sg * pick(dirs, tc_ax)
-    ma = (ma_sg * pick(dirs, ma_ax)).clamp_min(EPS)  # > 0 except for the zero vector
+    face, sc, tc, ma, dsc, dtc, dma = _face_coords(dirs, dds)
+    ma = ma.clamp_min(EPS)  # > 0 except for the zero vector
     uv = torch.stack([0.5 * (sc / ma + 1.0), 0.5 * (tc / ma + 1.0)], dim=-1)
-    duv = []
-    for dd in dds:
-        dsc = sc_sg * pick(dd, sc_ax)
-        dtc = tc_sg * pick(dd, tc_ax)
-        dma = ma_sg * pick(dd, ma_ax)
-        duv.append(torch.stack([0.5 * (dsc * ma - sc * dma) / (ma * ma),
-                                0.5 * (dtc * ma - tc * dma) / (ma * ma)], dim=-1))
+    duv = [torch.stack([0.5 * (a * ma - sc * c) / (ma * ma), 0.5 * (b * ma - tc * c) / (ma * ma)], dim=-1)
+           for a, b, c in zip(dsc, dtc, dma)]
     return (face, uv, duv[0], duv[1]) if duv else (face, uv)
+
+
+def _face_coords(dirs: torch.Tensor, dds: list[torch.Tensor]):
+    """(face, s_c, t_c, m_a, [d s_c], [d t_c], [d m_a]) of OpenGL table 8.19, by selects on the components.
+
+    The same values as ``cube_tables`` + ``pick`` (the face of ``major_face``:
+    ties prefer x over y over z), in elementwise selects instead of table
+    lookups and gathers: on the CPU 3-4x fewer passes over the points, the
+    face pick of every cube-map read. Per face, (s_c, t_c, m_a) = (-g z, -y,
+    g x) on +-X, (x, g z, g y) on +-Y, (g x, -y, g z) on +-Z, g = +-1 the
+    sign of the major component.
+    """
+    a = dirs.detach().abs()
+    ax, ay, az = a.unbind(-1)
+    isx = (ax >= ay) & (ax >= az)
+    isy = ~isx & (ay >= az)
+    d = dirs.detach()
+    neg = torch.where(isx, d[..., 0] < 0, torch.where(isy, d[..., 1] < 0, d[..., 2] < 0))
+    face = torch.where(isx, 0, torch.where(isy, 2, 4)) + neg.long()
+    g = 1.0 - 2.0 * neg.to(dirs.dtype)
+
+    def coords(v: torch.Tensor):
+        x, y, z = v.unbind(-1)
+        sc = torch.where(isx, -g * z, torch.where(isy, x, g * x))
+        tc = torch.where(isy, g * z, -y)
+        ma = g * torch.where(isx, x, torch.where(isy, y, z))
+        return sc, tc, ma
+
+    sc, tc, ma = coords(dirs)
+    ds = [coords(dd) for dd in dds]
+    return face, sc, tc, ma, [t[0] for t in ds], [t[1] for t in ds], [t[2] for t in ds]
 
 
 def cube_to_direction(face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:

@@ -15,7 +15,7 @@ The one PSNR is :func:`difftex.metrics.psnr`.
 from .meshes import DATA_DIR, SPOT_MESH, SPOT_TEXTURE, icosphere, spot_mesh, spot_texture
 from .peers import grid_sample_lookup, kornia_lookup, pad_and_grid
 from .references import checker_footprint_mean, checker_pixel_box_mean, supersampled
-from .scenes import checker_noise_texture, checker_texture, grazing_plane
+from .scenes import checker_noise_texture, checker_texture, grazing_plane, mirror_sphere, reflection_dirs
 from .suite import (CHECKER, PITCHES, SPHERE_MINIFICATION, SPOT_VIEWS, Scene, build_scenes, plane_fov, plane_scene,
                     sphere_mvp, sphere_scene, sphere_uv, spot_mvp, spot_scene)
 from .timing import Timing, time_interleaved
@@ -24,7 +24,7 @@ __all__ = [
     "DATA_DIR", "SPOT_MESH", "SPOT_TEXTURE", "icosphere", "spot_mesh", "spot_texture",
     "grid_sample_lookup", "kornia_lookup", "pad_and_grid",
     "checker_footprint_mean", "checker_pixel_box_mean", "supersampled",
-    "checker_noise_texture", "checker_texture", "grazing_plane",
+    "checker_noise_texture", "checker_texture", "grazing_plane", "mirror_sphere", "reflection_dirs",
     "CHECKER", "PITCHES", "SPHERE_MINIFICATION", "SPOT_VIEWS", "Scene", "build_scenes", "plane_fov", "plane_scene",
     "sphere_mvp", "sphere_scene", "sphere_uv", "spot_mvp", "spot_scene",
     "Timing", "time_interleaved",

@@ -141,3 +141,74 @@ def checker_texture(size: int = 512, checks: int = 32, lo: float = 0.1, hi: floa
     return (lo + (hi - lo) * board).expand(channels, size, size).unsqueeze(0).to(dtype).contiguous()
 
 
+
+
+def reflection_dirs(points: Tensor, points_dx: Tensor, points_dy: Tensor, normals: Tensor, normals_dx: Tensor,
+                    normals_dy: Tensor, eye: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Mirror directions ``r = v - 2 (v . n) n`` of the view vectors about the normals, with their derivatives.
+
+    Args:
+        points, normals: [..., 3] surface points and normals (any length; normalised here), with
+            their derivatives per pixel column / row ``*_dx``, ``*_dy`` [..., 3] (e.g. from
+            ``difftex.interpolate(..., derivatives=True)``).
+        eye: [3] or [..., 3] camera position; ``v`` is the unit vector from the eye to the point.
+
+    Returns:
+        ``(r, r_dx, r_dy)`` [..., 3]: unit reflected directions and their exact derivatives (the
+        ``dirs_dx`` / ``dirs_dy`` of :func:`difftex.envmap.cubemap`). Differentiable in every input.
+        Zero-length points or normals (background pixels) give finite values.
+    """
+    def unit(x: Tensor, dxs: list[Tensor]) -> tuple[Tensor, list[Tensor]]:
+        n = x.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        u = x / n
+        return u, [(d - u * (u * d).sum(-1, keepdim=True)) / n for d in dxs]
+
+    v, dvs = unit(points - eye, [points_dx, points_dy])
+    n, dns = unit(normals, [normals_dx, normals_dy])
+    vn = (v * n).sum(-1, keepdim=True)
+    r = v - 2 * vn * n
+    drs = [dv - 2 * (((dv * n).sum(-1, keepdim=True) + (v * dn).sum(-1, keepdim=True)) * n + vn * dn)
+           for dv, dn in zip(dvs, dns)]
+    return r, drs[0], drs[1]
+
+
+def mirror_sphere(eye, res: int, *, ss: int = 1, fov_deg: float = 30.0, subdivisions: int = 4,
+                  dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """A unit mirror sphere at the origin seen from ``eye`` (looking at the origin, +y up), rasterized.
+
+    Args:
+        eye: camera position, a 3-sequence or [3] tensor (distance > 1).
+        res: image size; ``ss``: supersampling (the image is rendered at res * ss, so that
+            ``avg_pool2d(x, ss)`` box-filters the ss x ss sub-pixels of every pixel).
+        fov_deg: vertical field of view; subdivisions: of the icosphere.
+
+    Returns:
+        ``(dirs, dirs_dx, dirs_dy, mask)``: [1, R, R, 3] reflected view directions (R = res * ss),
+        their derivatives per (sub-)pixel column / row, and the coverage [1, R, R] bool. The
+        normal is the interpolated position's direction (the sphere's exact normal at that
+        point). Background pixels hold the view direction and zero derivatives.
+    """
+    import difftex
+    from ..geometry import camera
+    from .meshes import icosphere
+
+    R = res * ss
+    e = torch.as_tensor(eye, dtype=dtype)
+    verts, faces = icosphere(subdivisions, dtype=dtype)
+    proj = camera.perspective(fov_deg, 1.0, 0.1, float(e.norm()) + 2.0, degrees=True)
+    mvp = proj @ camera.look_at(e, torch.zeros(3, dtype=dtype), torch.tensor([0.0, 1.0, 0.0], dtype=dtype))
+    frags = difftex.rasterize(camera.transform(verts, mvp.unsqueeze(0)), faces, (R, R))
+    p, pdx, pdy = difftex.interpolate(verts, faces, frags, derivatives=True)
+    mask = frags.tri_id >= 0
+    r, rdx, rdy = reflection_dirs(p, pdx, pdy, p, pdx, pdy, e)
+    m = mask.unsqueeze(-1)
+    # Background: the camera ray itself (a direction the environment can show behind the object).
+    t = math.tan(math.radians(fov_deg) / 2)
+    c = (torch.arange(R, dtype=dtype) + 0.5) / R * 2 - 1
+    yy, xx = torch.meshgrid(-c * t, c * t, indexing="ij")
+    fwd = -e / e.norm()
+    right = torch.linalg.cross(fwd, torch.tensor([0.0, 1.0, 0.0], dtype=dtype))
+    right = right / right.norm()
+    up = torch.linalg.cross(right, fwd)
+    ray = (fwd + xx.unsqueeze(-1) * right + yy.unsqueeze(-1) * up).unsqueeze(0)
+    return (torch.where(m, r, ray), torch.where(m, rdx, 0.0), torch.where(m, rdy, 0.0), mask)

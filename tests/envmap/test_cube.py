@@ -484,3 +484,39 @@ def test_cube_to_equirect_gradient_and_bad_size():
         difftex.envmap.cube_to_equirect(cube, 8)
     with pytest.raises(ValueError, match=r"size: expected \(H, W\) ints >= 1, got \(0, 4\)"):
         difftex.envmap.cube_to_equirect(cube, (0, 4))
+
+
+def test_cube_mipmap_keeps_its_atlases_without_grad():
+    cube, d = grad_inputs(S=8)
+    dx, dy = tangent_derivs(d.detach(), 0.5)
+    mm = cube_mipmap(cube.detach().clone())
+    first = cubemap(mm, d.detach(), filter="trilinear", dirs_dx=dx, dirs_dy=dy)
+    kept = dict(mm._atlases)
+    assert kept and all(v[2] is mm._atlases[k][2] for k, v in kept.items())
+    again = cubemap(mm, d.detach(), filter="trilinear", dirs_dx=dx, dirs_dy=dy)
+    assert torch.equal(first, again) and all(v[2] is mm._atlases[k][2] for k, v in kept.items())
+    # An in-place change of a level is seen (rebuilt), and values follow it.
+    mm.levels[0].add_(1.0)
+    assert torch.equal(cubemap(mm, d.detach()), cubemap(mm.levels[0], d.detach()))
+    # Under grad mode a level that requires grad is read in the graph, every call.
+    ref = cube_mipmap(cube)
+    out = cubemap(ref, d.detach(), filter="trilinear", dirs_dx=dx, dirs_dy=dy)
+    assert not ref._atlases and out.requires_grad
+
+
+@pytest.mark.parametrize("filter", ["anisotropic", "auto"])
+def test_anisotropic_level_blends_across_edges(filter):
+    """The anisotropic / auto level is blended with the neighbouring face's near edges, as trilinear's.
+
+    Along the great circles with a footprint of 1.5 x 4 texels: largest jump across a face change measured
+    0.045 (0.079 with per-face levels), inside faces 0.086 (tap counts change there too)."""
+    S = 8
+    cube = torch.rand(1, 6, 3, S, S, dtype=F64, generator=torch.Generator().manual_seed(8))
+
+    def read(d):
+        t = d.roll(-1, -2) - d.roll(1, -2)
+        t = t / t.norm(dim=-1, keepdim=True)
+        return cubemap(cube, d, filter=filter, dirs_dx=t * 1.5 / S, dirs_dy=torch.linalg.cross(d, t) * 4.0 / S)
+
+    cross, inside = seam_jumps(read, S)
+    assert cross < 0.06 and cross <= inside, (cross, inside)

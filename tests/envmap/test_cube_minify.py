@@ -1,0 +1,27 @@
+"""Minification through the rasterizer: a mirror sphere reflecting a noise cube map, against 16 x 16 supersampling."""
+import torch
+import torch.nn.functional as F
+
+from difftex.envmap import cubemap
+from difftex.metrics import psnr
+from difftex.testing import mirror_sphere
+
+
+def test_mirror_sphere_psnr_ordering():
+    """The sphere reflects the whole environment into a disc of ~26 pixels: minification grows from ~2 cube
+    texels a pixel at the centre to unbounded at the silhouette, where the footprints are long and thin.
+    Against the 16 x 16 supersampled bilinear render (box filtered), on the pixels covered by all 256
+    sub-samples: measured bilinear 16.6, trilinear 25.5, anisotropic 27.8 dB (float32)."""
+    S, res, ss = 64, 32, 16
+    cube = torch.rand(1, 6, 3, S, S, generator=torch.Generator().manual_seed(0))
+    eye = (0.4, 0.5, 2.2)
+    d, dx, dy, mask = mirror_sphere(eye, res, subdivisions=3)
+    ds, _, _, ms = mirror_sphere(eye, res, ss=ss, subdivisions=3)
+    ref = F.avg_pool2d(cubemap(cube, ds), ss)
+    mask = (mask & (F.avg_pool2d(ms.float().unsqueeze(1), ss)[:, 0] == 1)).unsqueeze(1)
+    assert mask.sum() > 300
+    got = {f: psnr(cubemap(cube, d, filter=f, dirs_dx=dx, dirs_dy=dy), ref, mask=mask)
+           for f in ("bilinear", "trilinear", "anisotropic")}
+    assert got["bilinear"] < 19 and got["bilinear"] + 5 < got["trilinear"], got
+    assert got["trilinear"] + 1.5 < got["anisotropic"], got
+    assert got["anisotropic"] > 26.5, got
