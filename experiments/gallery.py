@@ -141,10 +141,10 @@ def cylinder() -> difftex.Mesh:
 
 
 def spot_upright() -> difftex.Mesh:
-    """spot centred, scaled by 1.2 (to fill its tiles) and turned z-up (+90 degrees about x: y -> z), with vertex normals."""
+    """spot centred and turned z-up facing -y, the cameras' side ((x, y, z) -> (-x, z, y), a rotation), with vertex normals."""
     m = spot_mesh()
-    p = (m.positions - torch.tensor([0.0, 0.1, 0.19])) * 1.2
-    p = torch.stack([p[:, 0], -p[:, 2], p[:, 1]], -1)
+    p = m.positions - torch.tensor([0.0, 0.1, 0.19])
+    p = torch.stack([-p[:, 0], p[:, 2], p[:, 1]], -1)
     return difftex.Mesh(p, m.faces, m.uv, m.uv_faces, vertex_normals(p, m.faces), m.faces)
 
 
@@ -234,7 +234,7 @@ def mapping_tile(mesh: difftex.Mesh, mapping: str, tex, res: int, cyl_axis: floa
 # ---------------------------------------------------------------- row 4: spot, texture modes and solid textures
 
 def spot_tile(kind: str, spot: difftex.Mesh, tex, res: int, bake_size: int) -> np.ndarray:
-    v = view(spot.positions, spot.faces, res, eye=(1.6, -2.7, 0.9))
+    v = view(spot.positions, spot.faces, res, eye=(1.4, -2.9, 1.0))
     p = difftex.interpolate(spot.positions, spot.faces, v.frags)
     n = difftex.interpolate(spot.normals, spot.faces, v.frags)
     uv, du, dv = difftex.interpolate(spot.uv, spot.faces, v.frags, derivatives=True, attr_faces=spot.uv_faces)
@@ -244,14 +244,14 @@ def spot_tile(kind: str, spot: difftex.Mesh, tex, res: int, bake_size: int) -> n
     if kind == "shading":
         return to_image(white, v.mask)
     # Solid textures read the object-space point (in spot's own y-up frame: the grain follows its body).
-    q = torch.stack([p[..., 0], p[..., 2], -p[..., 1]], -1)
+    q = torch.stack([-p[..., 0], p[..., 2], p[..., 1]], -1)
     if kind == "marble":
         return to_image(lit(v, n, p, difftex.noise.marble(q * 1.6), ks=0.35), v.mask)
     if kind == "wood":
         return to_image(lit(v, n, p, difftex.noise.wood(q), ks=0.2), v.mask)
     if kind == "baked":
         baked = difftex.bake(spot, lambda pts, nrm: difftex.noise.marble(
-            torch.stack([pts[..., 0], pts[..., 2], -pts[..., 1]], -1) * 1.6), bake_size)
+            torch.stack([-pts[..., 0], pts[..., 2], pts[..., 1]], -1) * 1.6), bake_size)
         colour = read(baked.unsqueeze(0), uv, du, dv, wrap="clamp")
         return to_image(lit(v, n, p, colour, ks=0.35), v.mask)
     raise ValueError(kind)

@@ -74,11 +74,14 @@ def test_mirror_sphere_reflects_the_environment(run, kind):
     both = mask[0].numpy() & hit
     # The mesh sphere's silhouette differs from the exact one by a pixel at most.
     assert both.sum() > 0.95 * hit.sum() and both.sum() > 0.95 * mask.sum()
-    ours = refl[0].numpy()[both].mean(0)
-    truth = ref[both].mean(0)
-    # The filters blur each pixel's footprint (and the tiny sun), which moves the mean a little;
-    # reflecting about the wrong axis or sampling the wrong hemisphere moves it by 30 % or more.
-    np.testing.assert_allclose(ours, truth, rtol=0.12)
+    ours, truth = refl[0].numpy()[both], ref[both]
+    # The filters blur each pixel's footprint (and the tiny sun), which moves the mean by up to 4 % (measured);
+    # reflecting -r instead of r moves it by 12-34 %, flipping y by 6-9 %.
+    np.testing.assert_allclose(ours.mean(0), truth.mean(0), rtol=0.08)
+    # The pattern, pixel by pixel (log luminance; 0.96 / 0.98 measured): a left-right mirrored reflection,
+    # which keeps the mean, correlates 0.72, -r -0.63.
+    corr = np.corrcoef(np.log1p(ours.mean(-1)), np.log1p(truth.mean(-1)))[0, 1]
+    assert corr > 0.9
 
 
 def test_bump_and_normal_map_agree(run):
