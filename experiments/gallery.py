@@ -141,7 +141,8 @@ def cylinder() -> difftex.Mesh:
 
 
 def spot_upright() -> difftex.Mesh:
-    """spot centred and turned z-up facing -y, the cameras' side ((x, y, z) -> (-x, z, y), a rotation), with vertex normals."""
+    """spot centred and turned z-up facing -y, the cameras' side ((x, y, z) -> (-x, z, y), a rotation),
+    with vertex normals."""
     m = spot_mesh()
     p = m.positions - torch.tensor([0.0, 0.1, 0.19])
     p = torch.stack([-p[:, 0], p[:, 2], p[:, 1]], -1)
