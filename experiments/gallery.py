@@ -9,8 +9,8 @@ screen-space derivatives from ``difftex.interpolate``, every texture read with a
      tinted by u (red) and v (green) so that the orientation, seams and distortion show.  The planar /
      cylindrical / spherical / box / normal uv are computed per pixel with analytic derivatives (no seam
      line); "own uv" is the mesh's per-vertex uv interpolated across triangles: the sphere's is the
-     spherical map at its vertices (seam split), the cylinder has none, so its per-vertex cylindrical uv is
-     smeared across the seam triangles, which is what the per-pixel mappings avoid.
+     spherical map at its vertices (seam split), the cylinder has none, so its per-vertex cylindrical uv (seam
+     turned to the camera) is smeared across the seam triangles, which is what the per-pixel mappings avoid.
 4.   spot with its texture: "replace" (the texel colour) and "modulate" (texture x Blinn-Phong with two
      lights), the Blinn-Phong shading alone, the solid textures marble and wood (``difftex.noise``,
      evaluated at each pixel's object-space point), and the marble baked into a 2D texture (``difftex.bake``).
@@ -129,14 +129,16 @@ def _outward(pos: Tensor, faces: Tensor, *others: Tensor) -> tuple[Tensor, ...]:
 
 def cylinder() -> difftex.Mesh:
     """trimesh's cylinder (z axis, radius 0.65, height 1.6) split at its rims so the caps keep flat normals;
-    its "own uv" is the cylindrical map evaluated at the vertices (trimesh gives it none)."""
+    its "own uv" is the cylindrical map evaluated at the vertices (trimesh gives it none), with the seam turned
+    towards the camera: the triangles across it interpolate u from ~1 back to ~0, a squeezed copy of the whole
+    texture, which is what the per-pixel mappings (analytic derivatives, no vertex uv) avoid."""
     import trimesh
 
     tm = trimesh.creation.cylinder(radius=0.65, height=1.6, sections=64).smooth_shaded
     pos = torch.tensor(tm.vertices, dtype=torch.float32)
     faces = torch.tensor(tm.faces, dtype=torch.int64)
     normals = torch.tensor(np.array(tm.vertex_normals), dtype=torch.float32)
-    uv = difftex.cylindrical_uv(pos, (0.0, 0.0, 0.0), (0.0, 0.0, 0.8))
+    uv = difftex.cylindrical_uv(pos, (0.0, 0.0, 0.0), (0.0, 0.0, 0.8), ref=(-EYE[0], -EYE[1], 0.0))
     return difftex.Mesh(pos, faces, uv, faces, normals, faces)
 
 
@@ -385,7 +387,7 @@ def tiles(res: int, bumps: int, bake_size: int, cube_size: int, segments: int, s
         for mapping in MAPPINGS:
             label = f"{name}: {mapping}"
             if mapping == "own uv" and name == "cylinder":
-                label = "cylinder: per-vertex\ncylindrical uv (no own uv)"
+                label = "cylinder: per-vertex cyl. uv\n(none of its own; seam in front)"
             elif mapping == "own uv" and name == "sphere":
                 label = "sphere: own uv\n(per vertex, seam split)"
             elif mapping == "own uv":
