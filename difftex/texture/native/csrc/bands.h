@@ -40,8 +40,8 @@ inline int64_t band_count(int64_t h, int64_t reach, int64_t cap = 512) {
 // The band of row r in [0, h) of a level cut into nb bands.
 inline int64_t band_of(int64_t r, int64_t h, int64_t nb) { return r * nb / h; }
 
-// Runs work(e) for every point e in [0, M) with keys[e] >= 0, on
-// at::parallel_for threads. keys[e] is a band in [0, classes.size()),
+// Runs work(idx, n) over every point e in [0, M) with keys[e] >= 0 (idx:
+// n of them, in order), on at::parallel_for threads. keys[e] is a band in [0, classes.size()),
 // classes[band] its class; the classes run in order, the bands of one
 // class in parallel (grouped by point count, so that threads get similar
 // work), each band's points in index order. Below `serial_below` points a
@@ -82,9 +82,15 @@ void run_banded(const int32_t* keys, int64_t M, const std::vector<int32_t>& clas
     }
     const int32_t* own = owner.data() + 1;
     at::parallel_for(0, G, 1, [&](int64_t g0, int64_t g1) {
+      int64_t idx[256];  // the group's points go to work in short runs (blocks of the kernels)
+      int64_t n = 0;
       for (int64_t g = g0; g < g1; ++g)
         for (int64_t e = 0; e < M; ++e)
-          if (own[keys[e]] == g) work(e);
+          if (own[keys[e]] == g) {
+            idx[n++] = e;
+            if (n == 256) work(static_cast<const int64_t*>(idx), n), n = 0;
+          }
+      if (n) work(static_cast<const int64_t*>(idx), n);
     });
   }
 }

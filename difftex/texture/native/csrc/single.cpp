@@ -64,7 +64,10 @@ DT_INLINE Line<taps_of<KIND>()> line(scalar_t u, int64_t n, int mode) {
       r = std::min(std::max(u, static_cast<scalar_t>(-kFarUv)), static_cast<scalar_t>(1 + kFarUv));
     }
     const scalar_t x = r * static_cast<scalar_t>(n) - static_cast<scalar_t>(0.5);
-    a.in[0] = wrap_int(index_of(static_cast<double>(std::nearbyint(x))), n, mode, &a.i[0]);
+    // Half to even: x (|x| < 9n + 1) rounded in double by the 1.5 * 2^52 shift, which is exact for it.
+    const double xd = static_cast<double>(x);
+    const double xr = std::abs(xd) < 0.5 * kTwo52 ? (xd + 1.5 * kTwo52) - 1.5 * kTwo52 : xd;
+    a.in[0] = wrap_int(index_of(xr), n, mode, &a.i[0]);
     a.w[0] = 1.0;
     a.dw[0] = 0.0;
     a.slope = 1.0;
@@ -87,18 +90,6 @@ DT_INLINE Line<taps_of<KIND>()> line(scalar_t u, int64_t n, int mode) {
   return a;
 }
 
-// The first row a point writes (its band's key): the wrapped first tap for
-// repeat (its rows run on cyclically from there), else the least row read;
-// -1 where every tap reads the border constant.
-template <int K>
-DT_INLINE int64_t first_row(const Line<K>& a, int mode) {
-  if (mode == REPEAT) return a.i[0];
-  int64_t r = -1;
-  for (int q = 0; q < K; ++q)
-    if (a.in[q] && (r < 0 || a.i[q] < r)) r = a.i[q];
-  return r;
-}
-
 // The shapes and pointers of one call: texture [Bt, C, H, W], points
 // p = b * M + e of uv [B, M, 2]; per-point arrays [B, C, M] (values,
 // output gradients).
@@ -111,88 +102,241 @@ struct Args {
   const scalar_t* uv;
 };
 
-template <typename scalar_t, int KIND, int CC, bool kBorder>
-void forward_range(int64_t lo, int64_t hi, const Args<scalar_t>& A, scalar_t* out) {
+// Points go through the kernel in blocks of kBlock: first every point's
+// taps along both axes (a loop without texel reads, which the compiler
+// vectorises: measured, the per-point coordinate arithmetic and the serial
+// texel-read latency made a one-point-at-a-time loop 6-8x slower than
+// grid_sample's vectorised kernel), then the texel reads, a short body per
+// point whose loads the CPU overlaps across points.
+constexpr int kBlock = 64;
+
+// One axis' taps of a block of points (structure of arrays).
+template <int K>
+struct Taps {
+  int32_t i[K][kBlock];
+  bool in[K][kBlock];
+  double w[K][kBlock], dw[K][kBlock], slope[kBlock];
+};
+
+constexpr double kBig = 1073741824.0;  // 2^30: coordinates past it go through line() (int32 indices)
+
+// floor(x) for |x| < 2^31, without a branch: a coordinate's fraction is
+// random from point to point, and the compare-and-branch of common.h's
+// floor_capped mispredicted half the time (measured: most of the kernel's
+// time); selects also let the compiler vectorise the loop.
+DT_INLINE double floor_near(double x) {
+  const double t = static_cast<double>(static_cast<int32_t>(x));  // truncation toward 0
+  return t - static_cast<double>(t > x);
+}
+
+// Bilinear / bicubic taps of cnt coordinates x[j] (finite, |x| < 2^30) along an axis of n texels, wrap MODE:
+// the values of line() (the same fold, floor, wrap), in a loop of selects the compiler vectorises.
+template <int KIND, int MODE>
+void taps_near(const double* x, int cnt, int64_t n, Taps<taps_of<KIND>()>& T) {
   constexpr int K = taps_of<KIND>();
-  const int64_t C = CC > 0 ? CC : A.C, M = A.M;
-  for (int64_t p = lo; p < hi; ++p) {
-    const int64_t b = p / M, e = p - b * M;
-    scalar_t* o = out + b * C * M + e;
-    const scalar_t u = A.uv[2 * p], v = A.uv[2 * p + 1];
-    if (!std::isfinite(u) || !std::isfinite(v)) {
-      for (int64_t c = 0; c < C; ++c) o[c * M] = std::numeric_limits<scalar_t>::quiet_NaN();
-      continue;
+  const double nd = static_cast<double>(n);
+  const int32_t ni = static_cast<int32_t>(n);
+  for (int j = 0; j < cnt; ++j) {
+    double u = x[j], slope = 1.0;
+    if (MODE == REPEAT) {
+      u = u - floor_near(u);
+    } else if (MODE == MIRROR) {
+      const double h = 0.5 * u, f = h - floor_near(h);
+      u = 1.0 - std::fabs(2.0 * f - 1.0);
+      slope = 1.0 - 2.0 * static_cast<double>(f >= 0.5);
     }
-    const auto ax = line<KIND>(u, A.W, A.wrap_u);
-    const auto ay = line<KIND>(v, A.H, A.wrap_v);
-    const scalar_t* t = A.tex + (A.Bt == 1 ? 0 : b) * C * A.plane;
-    scalar_t wx[K], wy[K];
-    for (int q = 0; q < K; ++q) wx[q] = static_cast<scalar_t>(ax.w[q]), wy[q] = static_cast<scalar_t>(ay.w[q]);
-    for (int64_t c = 0; c < C; ++c) {
-      const scalar_t* tc = t + c * A.plane;
-      scalar_t s = 0;
-      for (int r = 0; r < K; ++r) {
-        const scalar_t* row = tc + ay.i[r] * A.W;
-        scalar_t acc = 0;
-        for (int q = 0; q < K; ++q) acc += wx[q] * (!kBorder || (ay.in[r] && ax.in[q]) ? row[ax.i[q]] : A.border);
-        s += wy[r] * acc;
+    double c = u * nd - 0.5;
+    if (MODE == CLAMP || MODE == BORDER) c = std::min(std::max(c, -kBig), kBig);
+    const double c0 = floor_near(c), t = c - c0;
+    const int32_t i = static_cast<int32_t>(c0);
+    T.slope[j] = slope;
+    for (int q = 0; q < K; ++q) {
+      int32_t r = i + q - (K == 4 ? 1 : 0);
+      bool in = true;
+      if (MODE == REPEAT) {  // r in [-2, n + 1]: one period off at most (n = 1: clamped below)
+        r += r < 0 ? ni : 0;
+        r -= r >= ni ? ni : 0;
+      } else if (MODE == MIRROR) {
+        r = r < 0 ? -1 - r : r;
+        r = r >= ni ? 2 * ni - 1 - r : r;
+      } else if (MODE == BORDER) {
+        in = r >= 0 && r < ni;
       }
-      o[c * M] = s;
+      r = r < 0 ? 0 : (r >= ni ? ni - 1 : r);  // clamp; a no-op for repeat / mirror from n = 2 on
+      T.i[q][j] = r;
+      T.in[q][j] = in;
+    }
+    if constexpr (KIND == LINEAR) {
+      T.w[0][j] = 1.0 - t; T.w[1][j] = t; T.dw[0][j] = -1.0; T.dw[1][j] = 1.0;
+    } else {
+      T.w[0][j] = cubic_far(t + 1); T.w[1][j] = cubic_near(t); T.w[2][j] = cubic_near(1 - t);
+      T.w[3][j] = cubic_far(2 - t);
+      T.dw[0][j] = cubic_far_d(t + 1); T.dw[1][j] = cubic_near_d(t); T.dw[2][j] = -cubic_near_d(1 - t);
+      T.dw[3][j] = -cubic_far_d(2 - t);
     }
   }
 }
 
-// Point p's backward: its uv gradient (need_uv) and its texture gradient
-// scattered into gt (gt not null).
+// The taps of a block's coordinates x[j] (from uv of dtype scalar_t) along an axis of n texels.
+template <int KIND, typename scalar_t>
+void taps_block(const double* x, int cnt, int64_t n, int mode, Taps<taps_of<KIND>()>& T) {
+  constexpr int K = taps_of<KIND>();
+  if constexpr (KIND != NEAREST) {
+    switch (mode) {
+      case REPEAT: taps_near<KIND, REPEAT>(x, cnt, n, T); break;
+      case CLAMP: taps_near<KIND, CLAMP>(x, cnt, n, T); break;
+      case MIRROR: taps_near<KIND, MIRROR>(x, cnt, n, T); break;
+      default: taps_near<KIND, BORDER>(x, cnt, n, T);
+    }
+  }
+  // Nearest, and the far or non-finite coordinates of the others: line(), one point at a time.
+  for (int j = 0; j < cnt; ++j) {
+    if (KIND != NEAREST && std::abs(x[j]) < kBig) continue;  // NaN fails the test too
+    const auto a = line<KIND>(static_cast<scalar_t>(x[j]), n, mode);
+    for (int q = 0; q < K; ++q) {
+      const int64_t i = a.i[q];
+      T.i[q][j] = static_cast<int32_t>(i);
+      T.in[q][j] = a.in[q];
+      T.w[q][j] = a.w[q];
+      T.dw[q][j] = a.dw[q];
+    }
+    T.slope[j] = a.slope;
+  }
+}
+
+// The first row point j of a block writes (its band's key): the wrapped
+// first tap for repeat (its rows run on cyclically from there), else the
+// least row read; -1 where every tap reads the border constant.
+template <int K>
+DT_INLINE int64_t first_row(const Taps<K>& T, int j, int mode) {
+  if (mode == REPEAT) return T.i[0][j];
+  int64_t r = -1;
+  for (int q = 0; q < K; ++q)
+    if (T.in[q][j] && (r < 0 || T.i[q][j] < r)) r = T.i[q][j];
+  return r;
+}
+
+// The block's points: indices p into [B * M], their coordinates and
+// whether both are finite.
+template <typename scalar_t, int KIND>
+struct Block {
+  static constexpr int K = taps_of<KIND>();
+  int cnt;
+  int64_t p[kBlock];
+  double u[kBlock], v[kBlock];
+  bool ok[kBlock];
+  Taps<K> x, y;
+
+  void load(const scalar_t* uv, int64_t W, int64_t H, int wrap_u, int wrap_v) {
+    for (int j = 0; j < cnt; ++j) {
+      u[j] = static_cast<double>(uv[2 * p[j]]);
+      v[j] = static_cast<double>(uv[2 * p[j] + 1]);
+      ok[j] = std::isfinite(u[j]) && std::isfinite(v[j]);
+    }
+    taps_block<KIND, scalar_t>(u, cnt, W, wrap_u, x);
+    taps_block<KIND, scalar_t>(v, cnt, H, wrap_v, y);
+  }
+};
+
 template <typename scalar_t, int KIND, int CC, bool kBorder>
-DT_INLINE void backward_point(int64_t p, const Args<scalar_t>& A, const scalar_t* grad, scalar_t* gt,
-                              scalar_t* guv) {
+void forward_range(int64_t lo, int64_t hi, const Args<scalar_t>& A, scalar_t* out) {
   constexpr int K = taps_of<KIND>();
   const int64_t C = CC > 0 ? CC : A.C, M = A.M;
-  const scalar_t u = A.uv[2 * p], v = A.uv[2 * p + 1];
-  if (!std::isfinite(u) || !std::isfinite(v)) return;
-  const int64_t b = p / M, e = p - b * M;
-  const scalar_t* g = grad + b * C * M + e;
-  const auto ax = line<KIND>(u, A.W, A.wrap_u);
-  const auto ay = line<KIND>(v, A.H, A.wrap_v);
-  scalar_t wx[K], wy[K];
-  for (int q = 0; q < K; ++q) wx[q] = static_cast<scalar_t>(ax.w[q]), wy[q] = static_cast<scalar_t>(ay.w[q]);
-  if (KIND != NEAREST && guv != nullptr) {
-    const scalar_t* t = A.tex + (A.Bt == 1 ? 0 : b) * C * A.plane;
-    scalar_t dx[K], dy[K];
-    for (int q = 0; q < K; ++q) dx[q] = static_cast<scalar_t>(ax.dw[q]), dy[q] = static_cast<scalar_t>(ay.dw[q]);
-    scalar_t sx = 0, sy = 0;
-    for (int64_t c = 0; c < C; ++c) {
-      const scalar_t* tc = t + c * A.plane;
-      scalar_t cx = 0, cy = 0;
-      for (int r = 0; r < K; ++r) {
-        const scalar_t* row = tc + ay.i[r] * A.W;
-        scalar_t rx = 0, rv = 0;
-        for (int q = 0; q < K; ++q) {
-          const scalar_t val = !kBorder || (ay.in[r] && ax.in[q]) ? row[ax.i[q]] : A.border;
-          rx += dx[q] * val;
-          rv += wx[q] * val;
-        }
-        cx += wy[r] * rx;
-        cy += dy[r] * rv;
+  Block<scalar_t, KIND> bl;
+  for (int64_t s = lo; s < hi; s += kBlock) {
+    bl.cnt = static_cast<int>(std::min<int64_t>(kBlock, hi - s));
+    for (int j = 0; j < bl.cnt; ++j) bl.p[j] = s + j;
+    bl.load(A.uv, A.W, A.H, A.wrap_u, A.wrap_v);
+    int64_t b = s / M, e = s - b * M;
+    for (int j = 0; j < bl.cnt; ++j, ++e) {
+      if (e == M) e = 0, ++b;
+      scalar_t* o = out + b * C * M + e;
+      if (!bl.ok[j]) {
+        for (int64_t c = 0; c < C; ++c) o[c * M] = std::numeric_limits<scalar_t>::quiet_NaN();
+        continue;
       }
-      sx += g[c * M] * cx;
-      sy += g[c * M] * cy;
+      const scalar_t* t = A.tex + (A.Bt == 1 ? 0 : b) * C * A.plane;
+      scalar_t wx[K], wy[K];
+      int64_t cols[K], rows[K];
+      for (int q = 0; q < K; ++q) {
+        wx[q] = static_cast<scalar_t>(bl.x.w[q][j]);
+        wy[q] = static_cast<scalar_t>(bl.y.w[q][j]);
+        cols[q] = bl.x.i[q][j];
+        rows[q] = bl.y.i[q][j] * A.W;
+      }
+      for (int64_t c = 0; c < C; ++c) {
+        const scalar_t* tc = t + c * A.plane;
+        scalar_t sum = 0;
+        for (int r = 0; r < K; ++r) {
+          const scalar_t* row = tc + rows[r];
+          scalar_t acc = 0;
+          for (int q = 0; q < K; ++q)
+            acc += wx[q] * (!kBorder || (bl.y.in[r][j] && bl.x.in[q][j]) ? row[cols[q]] : A.border);
+          sum += wy[r] * acc;
+        }
+        o[c * M] = sum;
+      }
     }
-    guv[2 * p] = static_cast<scalar_t>(sx * ax.slope * static_cast<double>(A.W));
-    guv[2 * p + 1] = static_cast<scalar_t>(sy * ay.slope * static_cast<double>(A.H));
   }
-  if (gt != nullptr) {
-    scalar_t* tg = gt + (A.Bt == 1 ? 0 : b) * C * A.plane;
-    for (int64_t c = 0; c < C; ++c) {
-      const scalar_t gc = g[c * M];
-      scalar_t* tc = tg + c * A.plane;
-      for (int r = 0; r < K; ++r) {
-        if (kBorder && !ay.in[r]) continue;
-        scalar_t* row = tc + ay.i[r] * A.W;
-        const scalar_t gr = gc * wy[r];
-        for (int q = 0; q < K; ++q)
-          if (!kBorder || ax.in[q]) row[ax.i[q]] += gr * wx[q];
+}
+
+// The backward of a block's points: their uv gradients (guv not null) and
+// texture gradients scattered into gt (not null).
+template <typename scalar_t, int KIND, int CC, bool kBorder>
+void backward_block(Block<scalar_t, KIND>& bl, const Args<scalar_t>& A, const scalar_t* grad, scalar_t* gt,
+                    scalar_t* guv) {
+  constexpr int K = taps_of<KIND>();
+  const int64_t C = CC > 0 ? CC : A.C, M = A.M;
+  bl.load(A.uv, A.W, A.H, A.wrap_u, A.wrap_v);
+  for (int j = 0; j < bl.cnt; ++j) {
+    if (!bl.ok[j]) continue;
+    const int64_t p = bl.p[j], b = p / M, e = p - b * M;
+    const scalar_t* g = grad + b * C * M + e;
+    scalar_t wx[K], wy[K];
+    int64_t cols[K], rows[K];
+    for (int q = 0; q < K; ++q) {
+      wx[q] = static_cast<scalar_t>(bl.x.w[q][j]);
+      wy[q] = static_cast<scalar_t>(bl.y.w[q][j]);
+      cols[q] = bl.x.i[q][j];
+      rows[q] = bl.y.i[q][j] * A.W;
+    }
+    if (KIND != NEAREST && guv != nullptr) {
+      const scalar_t* t = A.tex + (A.Bt == 1 ? 0 : b) * C * A.plane;
+      scalar_t dx[K], dy[K];
+      for (int q = 0; q < K; ++q) dx[q] = static_cast<scalar_t>(bl.x.dw[q][j]), dy[q] = static_cast<scalar_t>(bl.y.dw[q][j]);
+      scalar_t sx = 0, sy = 0;
+      for (int64_t c = 0; c < C; ++c) {
+        const scalar_t* tc = t + c * A.plane;
+        scalar_t cx = 0, cy = 0;
+        for (int r = 0; r < K; ++r) {
+          const scalar_t* row = tc + rows[r];
+          scalar_t rx = 0, rv = 0;
+          for (int q = 0; q < K; ++q) {
+            const scalar_t val = !kBorder || (bl.y.in[r][j] && bl.x.in[q][j]) ? row[cols[q]] : A.border;
+            rx += dx[q] * val;
+            rv += wx[q] * val;
+          }
+          cx += wy[r] * rx;
+          cy += dy[r] * rv;
+        }
+        sx += g[c * M] * cx;
+        sy += g[c * M] * cy;
+      }
+      guv[2 * p] = static_cast<scalar_t>(sx * bl.x.slope[j] * static_cast<double>(A.W));
+      guv[2 * p + 1] = static_cast<scalar_t>(sy * bl.y.slope[j] * static_cast<double>(A.H));
+    }
+    if (gt != nullptr) {
+      scalar_t* tg = gt + (A.Bt == 1 ? 0 : b) * C * A.plane;
+      for (int64_t c = 0; c < C; ++c) {
+        const scalar_t gc = g[c * M];
+        scalar_t* tc = tg + c * A.plane;
+        for (int r = 0; r < K; ++r) {
+          if (kBorder && !bl.y.in[r][j]) continue;
+          scalar_t* row = tc + rows[r];
+          const scalar_t gr = gc * wy[r];
+          for (int q = 0; q < K; ++q)
+            if (!kBorder || bl.x.in[q][j]) row[cols[q]] += gr * wx[q];
+        }
       }
     }
   }
@@ -219,6 +363,8 @@ void check_inputs(const torch::Tensor& texture, const torch::Tensor& uv, int64_t
               "sample: uv must be contiguous [B, M, 2] of the texture's dtype");
   TORCH_CHECK(texture.size(0) == 1 || texture.size(0) == uv.size(0),
               "sample: the texture batch must be 1 or uv's batch");
+  TORCH_CHECK(texture.size(2) < (1 << 30) && texture.size(3) < (1 << 30),
+              "sample: texture sides must be under 2^30 texels (int32 indices)");
 }
 
 // Runs f(std::integral_constant<int, KIND>) for the filter code.
@@ -273,10 +419,20 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
       specialized(C, opts.wrap_u, opts.wrap_v, [&](auto cc, auto border_) {
         constexpr int CC = decltype(cc)::value;
         constexpr bool kB = decltype(border_)::value;
-        auto one = [&](int64_t p) { backward_point<scalar_t, KIND, CC, kB>(p, A, pg, pgt, pguv); };
+        // The points of idx[0, n) in blocks: uv gradients, and texture gradients into tex (or none).
+        auto blocks = [&](const int64_t* idx, int64_t n, scalar_t* tex) {
+          Block<scalar_t, KIND> bl;
+          for (int64_t s = 0; s < n; s += kBlock) {
+            bl.cnt = static_cast<int>(std::min<int64_t>(kBlock, n - s));
+            for (int j = 0; j < bl.cnt; ++j) bl.p[j] = idx[s + j];
+            backward_block<scalar_t, KIND, CC, kB>(bl, A, pg, tex, pguv);
+          }
+        };
         if (!need_texture) {
           at::parallel_for(0, B * M, 2048, [&](int64_t lo, int64_t hi) {
-            for (int64_t p = lo; p < hi; ++p) one(p);
+            std::vector<int64_t> idx(hi - lo);
+            for (int64_t p = lo; p < hi; ++p) idx[p - lo] = p;
+            blocks(idx.data(), hi - lo, nullptr);
           });
           return;
         }
@@ -286,19 +442,27 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
         for (int64_t i = 0; i < Bt * nb; ++i) classes[i] = nb > 1 ? static_cast<int32_t>(i % nb % 2) : 0;
         std::vector<int32_t> keys(B * M);
         at::parallel_for(0, B * M, 4096, [&](int64_t lo, int64_t hi) {
-          for (int64_t p = lo; p < hi; ++p) {
-            const scalar_t v = A.uv[2 * p + 1];
-            if (!std::isfinite(A.uv[2 * p]) || !std::isfinite(v)) {
-              keys[p] = -1;
-              continue;
+          std::vector<int64_t> border_only;  // every tap on the border constant: the uv gradient alone
+          Taps<taps_of<KIND>()> ty;
+          double v[kBlock];
+          for (int64_t s = lo; s < hi; s += kBlock) {
+            const int cnt = static_cast<int>(std::min<int64_t>(kBlock, hi - s));
+            for (int j = 0; j < cnt; ++j) v[j] = static_cast<double>(A.uv[2 * (s + j) + 1]);
+            taps_block<KIND, scalar_t>(v, cnt, H, A.wrap_v, ty);
+            for (int j = 0; j < cnt; ++j) {
+              const int64_t p = s + j;
+              if (!std::isfinite(A.uv[2 * p]) || !std::isfinite(v[j])) {
+                keys[p] = -1;
+                continue;
+              }
+              const int64_t r = first_row(ty, j, A.wrap_v);
+              keys[p] = r < 0 ? -1 : static_cast<int32_t>((Bt == 1 ? 0 : p / M) * nb + band_of(r, H, nb));
+              if (r < 0 && pguv != nullptr) border_only.push_back(p);
             }
-            const int64_t r = first_row(line<KIND>(v, H, A.wrap_v), A.wrap_v);
-            keys[p] = r < 0 ? -1 : static_cast<int32_t>((Bt == 1 ? 0 : p / M) * nb + band_of(r, H, nb));
-            // Every tap on the border constant: no texel to scatter to, only the uv gradient.
-            if (r < 0 && pguv != nullptr) backward_point<scalar_t, KIND, CC, kB>(p, A, pg, nullptr, pguv);
           }
+          blocks(border_only.data(), static_cast<int64_t>(border_only.size()), nullptr);
         });
-        run_banded(keys.data(), B * M, classes, one);
+        run_banded(keys.data(), B * M, classes, [&](const int64_t* idx, int64_t n) { blocks(idx, n, pgt); });
       });
     });
   });

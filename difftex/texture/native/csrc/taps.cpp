@@ -3,7 +3,8 @@
 // first-order backward, one pass over the points: per point one tap
 // (trilinear, nearest-mip) or N taps spread along an axis (anisotropic,
 // auto), so no tap list is built, and a backward that touches only the
-// texels read. Semantics in common.h.
+// texels read, threaded over the points with the level gradients scattered
+// by bands of rows (bands.h; the band scales below). Semantics in common.h.
 //
 // Coordinates are computed in double, so float32 uv far from [0, 1] keep
 // their sub-texel position; texel arithmetic is in the texture's dtype (as
@@ -348,7 +349,9 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
             e, C, L, lp, puv, pd, pc, pa, pg, out, M, wrap_u, wrap_v, border, nearest, d_grad);
       };
       if (need_levels) {
-        run_banded(keys.data(), M, bands.classes, one);
+        run_banded(keys.data(), M, bands.classes, [&](const int64_t* idx, int64_t n) {
+          for (int64_t i = 0; i < n; ++i) one(idx[i]);
+        });
       } else {  // no scatter: the points are independent
         at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
           for (int64_t e = lo; e < hi; ++e) one(e);
