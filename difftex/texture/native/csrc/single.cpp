@@ -238,6 +238,37 @@ struct Block {
   }
 };
 
+// Prefetches the texel rows of a block's points in the C planes of tex
+// (write: for the gradient's scatter) before its loop reads them: the
+// points of a view walk across the texture, so nearly every point needs
+// lines that no cache holds, and one point's loads after another's left
+// the loop waiting on memory latency (measured: 2-3x the time of the
+// same loop over a texture in L1). Issued for the whole block at once,
+// the misses overlap.
+#if defined(__GNUC__) || defined(__clang__)
+#define DT_PREFETCH(addr, write) __builtin_prefetch((addr), (write) ? 1 : 0, 3)
+#else
+#define DT_PREFETCH(addr, write) ((void)(addr))
+#endif
+
+template <typename scalar_t, int KIND, bool kWrite>
+DT_INLINE void prefetch_block(const Block<scalar_t, KIND>& bl, const scalar_t* tex, int64_t C, int64_t Bt,
+                              int64_t M, int64_t W, int64_t plane) {
+  constexpr int K = taps_of<KIND>();
+  for (int j = 0; j < bl.cnt; ++j) {
+    if (!bl.ok[j]) continue;
+    const int64_t b = Bt == 1 ? 0 : bl.p[j] / M;
+    const scalar_t* t = tex + b * C * plane;
+    for (int r = 0; r < K; ++r) {
+      const scalar_t* row = t + static_cast<int64_t>(bl.y.i[r][j]) * W;
+      for (int64_t c = 0; c < C; ++c) {
+        DT_PREFETCH(row + c * plane + bl.x.i[0][j], kWrite);
+        if (K > 1) DT_PREFETCH(row + c * plane + bl.x.i[K - 1][j], kWrite);
+      }
+    }
+  }
+}
+
 template <typename scalar_t, int KIND, int CC, bool kBorder>
 void forward_range(int64_t lo, int64_t hi, const Args<scalar_t>& A, scalar_t* out) {
   constexpr int K = taps_of<KIND>();
@@ -247,6 +278,7 @@ void forward_range(int64_t lo, int64_t hi, const Args<scalar_t>& A, scalar_t* ou
     bl.cnt = static_cast<int>(std::min<int64_t>(kBlock, hi - s));
     for (int j = 0; j < bl.cnt; ++j) bl.p[j] = s + j;
     bl.load(A.uv, A.W, A.H, A.wrap_u, A.wrap_v);
+    prefetch_block<scalar_t, KIND, false>(bl, A.tex, C, A.Bt, M, A.W, A.plane);
     int64_t b = s / M, e = s - b * M;
     for (int j = 0; j < bl.cnt; ++j, ++e) {
       if (e == M) e = 0, ++b;
@@ -288,6 +320,8 @@ void backward_block(Block<scalar_t, KIND>& bl, const Args<scalar_t>& A, const sc
   constexpr int K = taps_of<KIND>();
   const int64_t C = CC > 0 ? CC : A.C, M = A.M;
   bl.load(A.uv, A.W, A.H, A.wrap_u, A.wrap_v);
+  if (guv != nullptr) prefetch_block<scalar_t, KIND, false>(bl, A.tex, C, A.Bt, M, A.W, A.plane);
+  if (gt != nullptr) prefetch_block<scalar_t, KIND, true>(bl, gt, C, A.Bt, M, A.W, A.plane);
   for (int j = 0; j < bl.cnt; ++j) {
     if (!bl.ok[j]) continue;
     const int64_t p = bl.p[j], b = p / M, e = p - b * M;
