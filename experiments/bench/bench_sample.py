@@ -113,13 +113,16 @@ class DrJit:
             dr.backward_from(dr.llvm.ad.Array3f(*out) if len(out) == 3 else out[0])
             gt, gp = dr.grad(t), dr.grad(pos)
             dr.eval(gt, gp)
-            dr.clear_grad(t)
+            # The texture's gradient accumulates over calls (as a parameter's .grad does in torch):
+            # clearing it here stops later backward passes from reaching it (drjit 1.x).
             return out, gt, gp
         return run
 
     def values(self, filter: str, wrap: str) -> tuple[torch.Tensor, torch.Tensor]:
-        """[C, M] values and the [C, H, W] texture gradient for a unit output gradient."""
+        """[C, M] values and the [C, H, W] texture gradient for a unit output gradient (a fresh texture)."""
+        self.textures.pop((filter, wrap), None)
         out, gt, _ = self.step(filter, wrap, True)()
+        self.textures.pop((filter, wrap), None)
         vals = torch.stack([torch.from_numpy(self.dr.llvm.Float(o).numpy().copy()) for o in out])
         g = torch.from_numpy(gt.numpy().copy()).permute(2, 0, 1)
         return vals, g
