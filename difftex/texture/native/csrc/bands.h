@@ -48,7 +48,7 @@ inline int64_t band_of(int64_t r, int64_t h, int64_t nb) { return r * nb / h; }
 // class runs on one thread.
 template <typename Work>
 void run_banded(const int32_t* keys, int64_t M, const std::vector<int32_t>& classes, Work&& work,
-                int64_t serial_below = 4096) {
+                int64_t serial_below = 1024) {
   const int64_t nbands = static_cast<int64_t>(classes.size());
   const int64_t T = std::max<int64_t>(1, at::get_num_threads());
   std::vector<int64_t> counts(nbands, 0);
