@@ -109,10 +109,12 @@ class DrJit:
             out = tex.eval_cubic(pos) if filter == "bicubic" else tex.eval(pos)
             if not grad:
                 dr.eval(out)
+                dr.sync_thread()  # the LLVM backend runs kernels asynchronously: wait for them
                 return out
             dr.backward_from(dr.llvm.ad.Array3f(*out) if len(out) == 3 else out[0])
             gt, gp = dr.grad(t), dr.grad(pos)
             dr.eval(gt, gp)
+            dr.sync_thread()
             # The texture's gradient accumulates over calls (as a parameter's .grad does in torch):
             # clearing it here stops later backward passes from reaching it (drjit 1.x).
             return out, gt, gp
