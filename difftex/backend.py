@@ -3,9 +3,10 @@
 difftex has three implementations of its reads, all giving the same values
 and gradients to rounding (the tests hold them equal):
 
-* ``"native"``: the C++ CPU kernel (``difftex.texture.native``) for the mip
-  filters' taps and footprint front end, EWA and the pyramid's box step;
-  float32 / float64 tensors on the CPU, where the kernel built.
+* ``"native"``: the C++ CPU kernel (``difftex.texture.native``) for the
+  single-level reads (nearest, bilinear, bicubic), the mip filters' taps
+  and footprint front end, EWA and the pyramid's box step; float32 /
+  float64 tensors on the CPU, where the kernel built.
 * ``"grid_sample"``: torch ops, with the single-level reads on
   ``torch.nn.functional.grid_sample`` and hand-written first-order
   backwards (``texture/filters/grid.py``); every device and dtype.
@@ -93,5 +94,8 @@ def wants_native(like: Tensor) -> bool:
 
 
 def single_level() -> str:
-    """The implementation of the single-level (nearest / bilinear / bicubic) reads: "grid_sample" or "gather"."""
+    """The torch implementation of the single-level (nearest / bilinear / bicubic) reads: "grid_sample" or "gather".
+
+    Where this says "grid_sample", CPU float32 / float64 reads go to the
+    native kernel instead where it is built (``wants_native``)."""
     return "gather" if current() == "reference" else "grid_sample"

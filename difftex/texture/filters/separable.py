@@ -1,9 +1,11 @@
-"""The single-level read that every filter calls: one autograd node over the two implementations.
+"""The single-level read that every filter calls: one autograd node over the three implementations.
 
-``difftex.backend`` picks the implementation: the grid_sample path
-(``grid.py``: forward and first-order backward on grid_sample) or the
-gather reference (``gather.py``). Double backward always runs the
-reference backward, which is itself differentiable.
+``difftex.backend`` picks the implementation: the native CPU kernel
+(``difftex.texture.native``, ``csrc/single.cpp``: float32 / float64 on the
+CPU, where it is built), the grid_sample path (``grid.py``: forward and
+first-order backward on grid_sample) or the gather reference
+(``gather.py``). Double backward always runs the reference backward, which
+is itself differentiable.
 """
 from __future__ import annotations
 
@@ -11,6 +13,8 @@ import torch
 from torch import Tensor
 
 from ...backend import single_level
+from .. import native
+from ..wrap import WRAP_CODES
 from .gather import separable_backward, separable_forward
 from .grid import FastSample, fast_forward
 
@@ -22,9 +26,13 @@ class SeparableSample(torch.autograd.Function):
     def forward(ctx, texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float) -> Tensor:
         ctx.save_for_backward(texture, uv)
         ctx.args = (kind, wrap_u, wrap_v, border)
-        ctx.fast = None
+        ctx.fast = ctx.native = None
         if single_level() == "gather":
             return separable_forward(texture, uv, kind, wrap_u, wrap_v, border)
+        kernel = native.kernel(uv)
+        if kernel is not None:
+            ctx.native = _native_args(kernel, texture, uv, kind, wrap_u, wrap_v, border)
+            return kernel.sample(*ctx.native)
         # The fast path keeps what its hand-written backward needs (the
         # padded texture, the grid); no graph.
         ctx.fast = FastSample(texture, uv, kind, wrap_u, wrap_v, border, tex_grad=ctx.needs_input_grad[0])
@@ -35,7 +43,11 @@ class SeparableSample(torch.autograd.Function):
         texture, uv = ctx.saved_tensors
         kind, wrap_u, wrap_v, border = ctx.args
         need_tex, need_uv = ctx.needs_input_grad[:2]
-        if ctx.fast is not None and not torch.is_grad_enabled():
+        if ctx.native is not None and not torch.is_grad_enabled():
+            tex_c, uv_c, code, opts = ctx.native
+            grad_tex, grad_uv = native.load().sample_backward(tex_c, uv_c, grad_out, code, opts,
+                                                              need_texture=need_tex, need_uv=need_uv)
+        elif ctx.fast is not None and not torch.is_grad_enabled():
             grad_tex, grad_uv = ctx.fast.backward(grad_out, need_tex, need_uv)
         else:  # double backward (create_graph=True) or the reference path
             grad_tex, grad_uv = separable_backward(texture, uv, grad_out, kind, wrap_u, wrap_v, border,
@@ -43,6 +55,12 @@ class SeparableSample(torch.autograd.Function):
         if need_uv and grad_uv is None:  # nearest: piecewise constant in uv
             grad_uv = torch.zeros_like(uv)
         return grad_tex, grad_uv, None, None, None, None
+
+
+def _native_args(kernel, texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float) -> tuple:
+    """The kernel's (texture, uv, kind, options) arguments, contiguous."""
+    return (texture.contiguous(), uv.contiguous(), kernel.KIND_CODES[kind],
+            kernel.ReadOptions(wrap_u=WRAP_CODES[wrap_u], wrap_v=WRAP_CODES[wrap_v], border=border))
 
 
 def separable_sample(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float = 0.0) -> Tensor:
@@ -55,6 +73,9 @@ def separable_sample(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v
     """
     if single_level() == "grid_sample" and not (torch.is_grad_enabled() and
                                                          (texture.requires_grad or uv.requires_grad)):
+        kernel = native.kernel(uv)
+        if kernel is not None:
+            return kernel.sample(*_native_args(kernel, texture, uv, kind, wrap_u, wrap_v, float(border)))
         with torch.no_grad():
             return fast_forward(texture, uv, kind, wrap_u, wrap_v, float(border))
     return SeparableSample.apply(texture, uv, kind, wrap_u, wrap_v, float(border))

@@ -1,4 +1,9 @@
-"""The native CPU kernel of the mip filters (C++ sources in ``csrc/``): built on first use, optional.
+"""The native CPU kernel of the texture reads (C++ sources in ``csrc/``): built on first use, optional.
+
+The single-level reads (nearest, bilinear, bicubic; ``filters/separable.py``)
+are one threaded pass over the points, forward and first-order backward
+(``csrc/single.cpp``), the gather reference and the grid_sample path staying
+the tested references.
 
 The trilinear / nearest-mip taps of a pyramid, one a point or N along the
 footprint's major axis (the trilinear, nearest-mip, anisotropic and auto
@@ -16,7 +21,9 @@ and runs wherever this kernel does not: on CUDA, for double backward, with
 compiler or ninja), which is reported once as a warning.
 
 The sources, one per kernel: ``csrc/taps.cpp`` (the taps, forward and
-backward), ``csrc/front.cpp``, ``csrc/box.cpp``, ``csrc/ewa.cpp``, with
+backward), ``csrc/front.cpp``, ``csrc/box.cpp``, ``csrc/ewa.cpp``,
+``csrc/single.cpp`` (the single-level reads), with ``csrc/bands.h`` (the
+threaded, lock-free texture-gradient scatter of single.cpp and taps.cpp),
 ``csrc/common.h`` (the shared inline helpers and the constants mirrored from
 the Python reference), ``csrc/kernels.h`` (the entry points and their
 options) and ``csrc/module.cpp`` (the Python bindings). The module exports

@@ -36,12 +36,13 @@ def test_the_tap_filters_run_on_the_kernel_forward_and_backward(filter, monkeypa
     calls = []
     real = native.load()
     spy = types.SimpleNamespace(**{name: getattr(real, name) for name in dir(real) if not name.startswith("_")})
-    for name in ("forward", "backward", "front", "ewa", "ewa_backward"):
+    for name in ("forward", "backward", "front", "ewa", "ewa_backward", "sample", "sample_backward"):
         setattr(spy, name, (lambda name: lambda *a, **k: calls.append(name) or getattr(real, name)(*a, **k))(name))
     monkeypatch.setattr(native, "load", lambda: spy)
     tex, uv, dx, dy = (t.requires_grad_() for t in _case())
     taps = filter in ("trilinear", "nearest-mip", "anisotropic", "auto")
-    kernel = (["forward", "backward"] if taps else ["ewa", "ewa_backward"] if filter == "ewa" else [])
+    kernel = (["forward", "backward"] if taps else ["ewa", "ewa_backward"] if filter == "ewa" else
+              ["sample", "sample_backward"])
     difftex.sample(tex, uv, filter=filter, uv_dx=dx, uv_dy=dy).sum().backward()
     assert calls == kernel
     # Derivatives without a gradient: the taps' footprint front end runs on the kernel too.

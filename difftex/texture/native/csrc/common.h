@@ -60,6 +60,11 @@ constexpr double kLog2Floor = -1.0;
 // cap on the coarsest level, in its texels).
 constexpr double kAlpha = 2.0;
 constexpr double kMaxMinor = 2.0;
+// filters/gather.py _CUBIC_A: the Keys cubic's a (grid_sample's bicubic),
+// and _FAR: past this distance in uv from [0, 1] every tap of every filter
+// is off the texture (the single-level reads, single.cpp).
+constexpr double kCubicA = -0.75;
+constexpr double kFarUv = 8.0;
 
 // The per-tap helpers below are small and called in the innermost loops;
 // left to itself the compiler keeps some out of line (measured: 20% of the

@@ -74,4 +74,13 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> raster_ba
                                                                                      torch::Tensor y, int64_t H,
                                                                                      int64_t W);
 
+// single.cpp: the single-level reads (kind 0 nearest, 1 bilinear, 2
+// bicubic; wrap and border from opts) of texture [Bt, C, H, W] at uv
+// [B, M, 2] (Bt = 1 or B): forward -> [B, C, M]; first-order backward ->
+// (texture gradient, uv gradient), each undefined where not needed.
+torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, const ReadOptions& opts);
+std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, torch::Tensor uv, torch::Tensor grad,
+                                                         int64_t kind, const ReadOptions& opts, bool need_texture,
+                                                         bool need_uv);
+
 }  // namespace difftex

@@ -96,4 +96,18 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   codes["mirror"] = static_cast<int>(MIRROR);
   codes["border"] = static_cast<int>(BORDER);
   m.attr("WRAP_CODES") = codes;
+
+  // single.cpp: the single-level reads.
+  m.def("sample", &sample, "nearest / bilinear / bicubic read of one level, forward", py::arg("texture"),
+        py::arg("uv"), py::arg("kind"), py::arg("opts"));
+  m.def("sample_backward", &sample_backward, "nearest / bilinear / bicubic read of one level, first-order backward",
+        py::arg("texture"), py::arg("uv"), py::arg("grad"), py::arg("kind"), py::arg("opts"), py::kw_only(),
+        py::arg("need_texture"), py::arg("need_uv"));
+  py::dict kinds;
+  kinds["nearest"] = 0;
+  kinds["linear"] = 1;
+  kinds["cubic"] = 2;
+  m.attr("KIND_CODES") = kinds;
+  m.attr("CUBIC_A") = kCubicA;
+  m.attr("FAR_UV") = kFarUv;
 }

@@ -3,13 +3,15 @@
 // first-order backward, one pass over the points: per point one tap
 // (trilinear, nearest-mip) or N taps spread along an axis (anisotropic,
 // auto), so no tap list is built, and a backward that touches only the
-// texels read. Semantics in common.h.
+// texels read, threaded over the points with the level gradients scattered
+// by bands of rows (bands.h; the band scales below). Semantics in common.h.
 //
 // Coordinates are computed in double, so float32 uv far from [0, 1] keep
 // their sub-texel position; texel arithmetic is in the texture's dtype (as
 // grid_sample's), with the channel count (1, 3, 4) and whether a border
 // constant is read fixed at compile time (measured: 20-30% faster than
 // double arithmetic with run-time checks, float32, 3 channels).
+#include "bands.h"
 #include "common.h"
 #include "kernels.h"
 
@@ -118,92 +120,169 @@ torch::Tensor forward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch
 
 namespace {
 
-// The backward's outputs: level gradients (allocated on first read when
-// need_levels) and pointers into the others (null where not needed).
+// The backward's outputs: level gradients (gp[k]: null where no point
+// reads level k or they are not needed) and the others (null where not
+// needed).
 template <typename scalar_t>
 struct Grads {
-  bool need_levels;
-  std::vector<torch::Tensor>* levels;
+  std::vector<scalar_t*> gp;
   scalar_t *uv, *D, *axis;
 };
 
-// The backward over all points (serial: the texture gradient is a scatter,
-// and points share texels); CC and kBorder as in forward_range.
+// Point e's backward: its uv / D / axis gradients, and its level gradients
+// scattered into out.gp; CC and kBorder as in forward_range.
 template <typename scalar_t, int CC, bool kBorder>
-void backward_points(int64_t Cdyn, const std::vector<torch::Tensor>& levels, const std::vector<Level>& L,
-                     const std::vector<const scalar_t*>& lp, const scalar_t* puv, const scalar_t* pd,
-                     const int64_t* pc, const scalar_t* pa, const scalar_t* pg, const Grads<scalar_t>& out, int64_t M,
-                     int64_t wrap_u, int64_t wrap_v, double border, bool nearest, bool d_grad) {
+DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<Level>& L,
+                              const std::vector<const scalar_t*>& lp, const scalar_t* puv, const scalar_t* pd,
+                              const int64_t* pc, const scalar_t* pa, const scalar_t* pg, const Grads<scalar_t>& out,
+                              int64_t M, int64_t wrap_u, int64_t wrap_v, double border, bool nearest, bool d_grad) {
   const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
-  const bool need_levels = out.need_levels;
-  std::vector<scalar_t*> gp(K, nullptr);
   const scalar_t bv = static_cast<scalar_t>(border);
   std::vector<scalar_t> heap(CC > 0 ? 0 : C);
   scalar_t stack[CC > 0 ? CC : 1];
   scalar_t* g = CC > 0 ? stack : heap.data();
-  for (int64_t e = 0; e < M; ++e) {
-    double u = puv[2 * e], v = puv[2 * e + 1];
-    if (!std::isfinite(u) || !std::isfinite(v)) continue;
-    Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
-    const int64_t N = tap_count(pc, e);
-    bool any = false;
-    for (int64_t c = 0; c < C; ++c) {
-      g[c] = pg[c * M + e] / static_cast<scalar_t>(N);
-      any = any || g[c] != 0;
-    }
-    if (!any) continue;
-    double du = 0, dv = 0, dD = 0, dax = 0, day = 0;
-    for (int64_t i = 0; i < N; ++i) {
-      double o = pc ? tap_offset(i, N) : 0.0;
-      double tu = pc ? u + o * pa[2 * e] : u, tv = pc ? v + o * pa[2 * e + 1] : v;
-      const Folded fu = fold(tu, wrap_u), fv = fold(tv, wrap_v);
-      double tdu = 0, tdv = 0;
-      for (int j = 0; j < r.n; ++j) {
-        const int64_t k = r.k[j];
-        const Level& lv = L[k];
-        Bilinear b = taps_folded(fu, fv, lv.h, lv.w, wrap_u, wrap_v);
-        const scalar_t fx = static_cast<scalar_t>(b.fx), fy = static_cast<scalar_t>(b.fy);
-        const scalar_t w[4] = {(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy};
-        const scalar_t wl = static_cast<scalar_t>(r.wt[j]);
-        const scalar_t* p = lp[k];
-        if (need_levels && gp[k] == nullptr) {
-          (*out.levels)[k] = torch::zeros_like(levels[k]);
-          gp[k] = (*out.levels)[k].template data_ptr<scalar_t>();
+  double u = puv[2 * e], v = puv[2 * e + 1];
+  if (!std::isfinite(u) || !std::isfinite(v)) return;
+  Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
+  const int64_t N = tap_count(pc, e);
+  bool any = false;
+  for (int64_t c = 0; c < C; ++c) {
+    g[c] = pg[c * M + e] / static_cast<scalar_t>(N);
+    any = any || g[c] != 0;
+  }
+  if (!any) return;
+  double du = 0, dv = 0, dD = 0, dax = 0, day = 0;
+  for (int64_t i = 0; i < N; ++i) {
+    double o = pc ? tap_offset(i, N) : 0.0;
+    double tu = pc ? u + o * pa[2 * e] : u, tv = pc ? v + o * pa[2 * e + 1] : v;
+    const Folded fu = fold(tu, wrap_u), fv = fold(tv, wrap_v);
+    double tdu = 0, tdv = 0;
+    for (int j = 0; j < r.n; ++j) {
+      const int64_t k = r.k[j];
+      const Level& lv = L[k];
+      Bilinear b = taps_folded(fu, fv, lv.h, lv.w, wrap_u, wrap_v);
+      const scalar_t fx = static_cast<scalar_t>(b.fx), fy = static_cast<scalar_t>(b.fy);
+      const scalar_t w[4] = {(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy};
+      const scalar_t wl = static_cast<scalar_t>(r.wt[j]);
+      const scalar_t* p = lp[k];
+      scalar_t* gk = out.gp[k];
+      scalar_t sx = 0, sy = 0, sv = 0;
+      for (int64_t c = 0; c < C; ++c) {
+        const scalar_t* pp = p + c * lv.plane;
+        scalar_t t[4];
+        for (int q = 0; q < 4; ++q) t[q] = !kBorder || b.inside[q] ? pp[b.idx[q]] : bv;
+        sx += g[c] * ((1 - fy) * (t[1] - t[0]) + fy * (t[3] - t[2]));
+        sy += g[c] * ((1 - fx) * (t[2] - t[0]) + fx * (t[3] - t[1]));
+        sv += g[c] * (w[0] * t[0] + w[1] * t[1] + w[2] * t[2] + w[3] * t[3]);
+        if (gk != nullptr) {
+          scalar_t* gq = gk + c * lv.plane;
+          const scalar_t gw = g[c] * wl;
+          for (int q = 0; q < 4; ++q)
+            if (!kBorder || b.inside[q]) gq[b.idx[q]] += gw * w[q];
         }
-        scalar_t sx = 0, sy = 0, sv = 0;
-        for (int64_t c = 0; c < C; ++c) {
-          const scalar_t* pp = p + c * lv.plane;
-          scalar_t t[4];
-          for (int q = 0; q < 4; ++q) t[q] = !kBorder || b.inside[q] ? pp[b.idx[q]] : bv;
-          sx += g[c] * ((1 - fy) * (t[1] - t[0]) + fy * (t[3] - t[2]));
-          sy += g[c] * ((1 - fx) * (t[2] - t[0]) + fx * (t[3] - t[1]));
-          sv += g[c] * (w[0] * t[0] + w[1] * t[1] + w[2] * t[2] + w[3] * t[3]);
-          if (need_levels) {
-            scalar_t* gq = gp[k] + c * lv.plane;
-            const scalar_t gw = g[c] * wl;
-            for (int q = 0; q < 4; ++q)
-              if (!kBorder || b.inside[q]) gq[b.idx[q]] += gw * w[q];
-          }
-        }
-        tdu += r.wt[j] * sx * b.sx * static_cast<double>(lv.w);
-        tdv += r.wt[j] * sy * b.sy * static_cast<double>(lv.h);
-        dD += r.dwt[j] * sv;
       }
-      du += tdu;
-      dv += tdv;
-      dax += o * tdu;
-      day += o * tdv;
+      tdu += r.wt[j] * sx * b.sx * static_cast<double>(lv.w);
+      tdv += r.wt[j] * sy * b.sy * static_cast<double>(lv.h);
+      dD += r.dwt[j] * sv;
     }
-    if (out.uv) {
-      out.uv[2 * e] = static_cast<scalar_t>(du);
-      out.uv[2 * e + 1] = static_cast<scalar_t>(dv);
-    }
-    if (out.D) out.D[e] = static_cast<scalar_t>(dD);
-    if (out.axis) {
-      out.axis[2 * e] = static_cast<scalar_t>(dax);
-      out.axis[2 * e + 1] = static_cast<scalar_t>(day);
+    du += tdu;
+    dv += tdv;
+    dax += o * tdu;
+    day += o * tdv;
+  }
+  if (out.uv) {
+    out.uv[2 * e] = static_cast<scalar_t>(du);
+    out.uv[2 * e + 1] = static_cast<scalar_t>(dv);
+  }
+  if (out.D) out.D[e] = static_cast<scalar_t>(dD);
+  if (out.axis) {
+    out.axis[2 * e] = static_cast<scalar_t>(dax);
+    out.axis[2 * e + 1] = static_cast<scalar_t>(day);
+  }
+}
+
+// The bands of the taps' level-gradient scatter (bands.h). A point writes
+// rows of up to two levels, around its taps' v range (N taps along the
+// axis); the bands are fractions of the texture height, the same on every
+// level, at several scales: nb0 bands (scale 0), nb0 / 2, ... down to 2,
+// the point keyed at the finest scale whose band holds its rows. Bands of
+// scale s are classes 2s (even) and 2s + 1 (odd); the last band is one
+// for the points no scale holds (a range over half the texture, or a
+// non-finite one), run serially at the end.
+struct TapBands {
+  int64_t nb0, scales, serial;  // serial: the last band's key
+  std::vector<int64_t> offset;  // first key of each scale
+  std::vector<int32_t> classes;
+};
+
+TapBands tap_bands(int64_t h0) {
+  TapBands t;
+  // Four rows of level 0 (two taps and a margin row on each side) fit in the finest band.
+  t.nb0 = band_count(h0, 4);
+  t.scales = 0;
+  for (int64_t nb = t.nb0; nb >= 2; nb /= 2) {
+    t.offset.push_back(static_cast<int64_t>(t.classes.size()));
+    for (int64_t j = 0; j < nb; ++j) t.classes.push_back(static_cast<int32_t>(2 * t.scales + j % 2));
+    ++t.scales;
+  }
+  t.serial = static_cast<int64_t>(t.classes.size());
+  t.classes.push_back(static_cast<int32_t>(2 * t.scales));
+  return t;
+}
+
+DT_INLINE int64_t floor_div(int64_t a, int64_t b) { return a >= 0 ? a / b : -((-a + b - 1) / b); }
+
+// The rows a point's taps write on a level of h rows, from the range
+// [lo, hi] of their v (repeat: unwrapped, within a period of [0, 1)), with
+// a margin row on each side: the taps fold and place each v on its own, so
+// a row edge may round the other way. Repeat: unwrapped rows; else rows of
+// [0, h).
+DT_INLINE void rows_of(double lo, double hi, int64_t h, int mode, int64_t* a, int64_t* b) {
+  if (mode == MIRROR) {  // the triangle wave's image of [lo, hi] (hi - lo < 2)
+    const double s = 2.0 * floor_capped(0.5 * lo), x = lo - s, y = hi - s;  // x in [0, 2), y < 4
+    const double fl = fold(x, MIRROR).u, fh = fold(y, MIRROR).u;
+    lo = std::min(fl, fh);
+    hi = std::max(fl, fh);
+    if (x <= 1 && y >= 1) hi = 1;  // a peak inside
+    if (x <= 3 && y >= 3) hi = 1;
+    if (x <= 2 && y >= 2) lo = 0;  // a trough inside
+  }
+  const double n = static_cast<double>(h);
+  *a = static_cast<int64_t>(floor_capped(lo * n - 0.5)) - 1;
+  *b = static_cast<int64_t>(floor_capped(hi * n - 0.5)) + 2;
+  if (mode != REPEAT) {
+    *a = std::min(std::max<int64_t>(*a, 0), h - 1);
+    *b = std::min(std::max<int64_t>(*b, 0), h - 1);
+  }
+}
+
+// Point e's band key (TapBands), or -1 where it writes nothing.
+DT_INLINE int32_t tap_key(const TapBands& T, const std::vector<Level>& L, double u, double v, const Reads& r,
+                          int64_t N, double av, int wrap_v) {
+  if (!std::isfinite(u) || !std::isfinite(v)) return -1;
+  const double half = N > 1 ? std::abs(av) * (0.5 - 0.5 / static_cast<double>(N)) : 0.0;
+  double lo = v - half, hi = v + half;
+  if (!std::isfinite(lo) || !std::isfinite(hi)) return static_cast<int32_t>(T.serial);
+  if (wrap_v == REPEAT || wrap_v == MIRROR) {
+    const double period = wrap_v == REPEAT ? 1.0 : 2.0;
+    if (!(hi - lo < period)) return static_cast<int32_t>(T.serial);
+    if (wrap_v == REPEAT) {
+      const double s = floor_capped(v);
+      lo -= s;
+      hi -= s;
     }
   }
+  int64_t a[2], b[2];
+  for (int j = 0; j < r.n; ++j) rows_of(lo, hi, L[r.k[j]].h, wrap_v, &a[j], &b[j]);
+  int64_t nb = T.nb0;
+  for (int64_t s = 0; s < T.scales; ++s, nb /= 2) {
+    int64_t band = std::numeric_limits<int64_t>::max();
+    for (int j = 0; j < r.n; ++j) band = std::min(band, floor_div(a[j] * nb, L[r.k[j]].h));
+    bool fits = true;
+    for (int j = 0; j < r.n; ++j) fits = fits && (b[j] + 1) * nb <= (band + 2) * L[r.k[j]].h;
+    if (fits) return static_cast<int32_t>(T.offset[s] + ((band % nb) + nb) % nb);
+  }
+  return static_cast<int32_t>(T.serial);
 }
 
 }  // namespace
@@ -230,16 +309,54 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
     Grads<scalar_t> out;
-    out.need_levels = need_levels;
-    out.levels = &gl;
+    out.gp.assign(K, nullptr);
     out.uv = need_uv ? guv.data_ptr<scalar_t>() : nullptr;
     out.D = need_D ? gD.data_ptr<scalar_t>() : nullptr;
     out.axis = need_axis ? gax.data_ptr<scalar_t>() : nullptr;
     const int64_t* pc = count.numel() ? count.data_ptr<int64_t>() : nullptr;
+    const scalar_t* pa = pc ? axis.data_ptr<scalar_t>() : nullptr;
+    const scalar_t *puv = uv.data_ptr<scalar_t>(), *pd = D.data_ptr<scalar_t>(), *pg = grad.data_ptr<scalar_t>();
+    std::vector<int32_t> keys;
+    TapBands bands;
+    if (need_levels) {
+      // The points' band keys, and the levels read (their gradients are allocated, zeroed, only for those).
+      bands = tap_bands(L[0].h);
+      keys.resize(M);
+      const int64_t T = std::max<int64_t>(1, at::get_num_threads());
+      std::vector<std::vector<char>> read(T, std::vector<char>(K, 0));
+      at::parallel_for(0, M, 4096, [&](int64_t lo, int64_t hi) {
+        auto& rd = read[std::min<int64_t>(at::get_thread_num(), T - 1)];
+        for (int64_t e = lo; e < hi; ++e) {
+          const Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
+          const int64_t N = tap_count(pc, e);
+          keys[e] = tap_key(bands, L, puv[2 * e], puv[2 * e + 1], r, N, pc ? static_cast<double>(pa[2 * e + 1]) : 0.0,
+                            static_cast<int>(wrap_v));
+          if (keys[e] >= 0)
+            for (int j = 0; j < r.n; ++j) rd[r.k[j]] = 1;
+        }
+      });
+      for (int64_t k = 0; k < K; ++k) {
+        bool any = false;
+        for (const auto& rd : read) any = any || rd[k];
+        if (!any) continue;
+        gl[k] = torch::zeros_like(levels[k]);
+        out.gp[k] = gl[k].template data_ptr<scalar_t>();
+      }
+    }
     specialized(C, wrap_u, wrap_v, [&](auto cc, auto border_) {
-      backward_points<scalar_t, decltype(cc)::value, decltype(border_)::value>(
-          C, levels, L, lp, uv.data_ptr<scalar_t>(), D.data_ptr<scalar_t>(), pc, pc ? axis.data_ptr<scalar_t>() : nullptr,
-          grad.data_ptr<scalar_t>(), out, M, wrap_u, wrap_v, border, nearest, d_grad);
+      auto one = [&](int64_t e) {
+        backward_point<scalar_t, decltype(cc)::value, decltype(border_)::value>(
+            e, C, L, lp, puv, pd, pc, pa, pg, out, M, wrap_u, wrap_v, border, nearest, d_grad);
+      };
+      if (need_levels) {
+        run_banded(keys.data(), M, bands.classes, [&](const int64_t* idx, int64_t n) {
+          for (int64_t i = 0; i < n; ++i) one(idx[i]);
+        });
+      } else {  // no scatter: the points are independent
+        at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
+          for (int64_t e = lo; e < hi; ++e) one(e);
+        });
+      }
     });
   });
   return {gl, guv, gD, gax};

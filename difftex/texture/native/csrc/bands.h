@@ -1,0 +1,98 @@
+// The lock-free scatter of a texture gradient over threads, shared by the
+// single-level backward (single.cpp) and the mip taps' backward (taps.cpp).
+//
+// Points share texels, so their gradient scatters cannot simply run in
+// parallel. Instead of a lock, atomics or one texture-sized buffer per
+// thread (zeroed and summed after: as costly as the scatter itself on a
+// 1024^2 texture), the texture rows are cut into bands and every point is
+// given the band where the rows it writes begin ("its key"). A band's
+// points write only inside it and the band after it (cyclically for
+// "repeat"): a key is only given where that holds. So bands of the same
+// parity never write the same texel, and the even bands run in parallel,
+// then the odd ones. A class groups bands that may run together (the
+// single-level read: its two parities; the taps: two per band scale, see
+// taps.cpp); classes run one after another.
+//
+// The result is deterministic and independent of the thread count: a texel
+// receives its terms from at most two bands, in class order, and a band's
+// points always run in index order on one thread; threads only decide
+// which bands run where.
+#pragma once
+
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <cstdint>
+#include <vector>
+
+namespace difftex {
+
+// The number of bands that a level of h rows is cut into where a point
+// writes at most `reach` consecutive rows: the largest power of two (at
+// most `cap`) whose every band has at least `reach` rows; 1 (one band, no
+// split) where two would not.
+inline int64_t band_count(int64_t h, int64_t reach, int64_t cap = 512) {
+  int64_t nb = 1;
+  while (nb * 2 <= cap && nb * 2 * reach <= h) nb *= 2;
+  return nb;
+}
+
+// The band of row r in [0, h) of a level cut into nb bands.
+inline int64_t band_of(int64_t r, int64_t h, int64_t nb) { return r * nb / h; }
+
+// Runs work(idx, n) over every point e in [0, M) with keys[e] >= 0 (idx:
+// n of them, in order), on at::parallel_for threads. keys[e] is a band in [0, classes.size()),
+// classes[band] its class; the classes run in order, the bands of one
+// class in parallel (grouped by point count, so that threads get similar
+// work), each band's points in index order. Below `serial_below` points a
+// class runs on one thread.
+template <typename Work>
+void run_banded(const int32_t* keys, int64_t M, const std::vector<int32_t>& classes, Work&& work,
+                int64_t serial_below = 1024) {
+  const int64_t nbands = static_cast<int64_t>(classes.size());
+  const int64_t T = std::max<int64_t>(1, at::get_num_threads());
+  std::vector<int64_t> counts(nbands, 0);
+  {
+    std::vector<std::vector<int64_t>> local(T, std::vector<int64_t>(nbands, 0));
+    at::parallel_for(0, M, 1 << 15, [&](int64_t lo, int64_t hi) {
+      auto& h = local[std::min<int64_t>(at::get_thread_num(), T - 1)];
+      for (int64_t e = lo; e < hi; ++e)
+        if (keys[e] >= 0) ++h[keys[e]];
+    });
+    for (const auto& h : local)
+      for (int64_t b = 0; b < nbands; ++b) counts[b] += h[b];
+  }
+  int32_t P = 0;
+  for (int32_t c : classes) P = std::max(P, c + 1);
+  // owner[b + 1]: the group that runs band b in the current class, -1 elsewhere (owner[0] for key -1).
+  std::vector<int32_t> owner(nbands + 1);
+  for (int32_t p = 0; p < P; ++p) {
+    int64_t total = 0, busy = 0;
+    for (int64_t b = 0; b < nbands; ++b)
+      if (classes[b] == p && counts[b]) total += counts[b], ++busy;
+    if (total == 0) continue;
+    const int64_t G = total < serial_below ? 1 : std::min(T, busy);
+    std::fill(owner.begin(), owner.end(), -1);
+    int64_t before = 0;
+    for (int64_t b = 0; b < nbands; ++b) {
+      if (classes[b] != p || !counts[b]) continue;
+      // Contiguous runs of bands of about total / G points each.
+      owner[b + 1] = static_cast<int32_t>(std::min<int64_t>(G - 1, (before + counts[b] / 2) * G / total));
+      before += counts[b];
+    }
+    const int32_t* own = owner.data() + 1;
+    at::parallel_for(0, G, 1, [&](int64_t g0, int64_t g1) {
+      int64_t idx[256];  // the group's points go to work in short runs (blocks of the kernels)
+      int64_t n = 0;
+      for (int64_t g = g0; g < g1; ++g)
+        for (int64_t e = 0; e < M; ++e)
+          if (own[keys[e]] == g) {
+            idx[n++] = e;
+            if (n == 256) work(static_cast<const int64_t*>(idx), n), n = 0;
+          }
+      if (n) work(static_cast<const int64_t*>(idx), n);
+    });
+  }
+}
+
+}  // namespace difftex

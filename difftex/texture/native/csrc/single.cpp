@@ -1,0 +1,506 @@
+// The single-level reads on the CPU: nearest, bilinear and bicubic
+// (filters/separable.py SeparableSample), forward and first-order
+// backward, one pass over the points, threaded over them. The semantics
+// are those of the gather reference (filters/gather.py), which the tests
+// hold it to: texel coordinate x = u * n - 0.5, nearest rounds x half to
+// even, bilinear reads floor(x) and floor(x) + 1, bicubic floor(x) - 1 ..
+// floor(x) + 2 with the Keys kernel (a = kCubicA, grid_sample's), every
+// index wrapped per axis as wrap.py does.
+//
+// Bilinear and bicubic fold u into one period first (common.h fold, as the
+// mip taps do), in double: the same texels as the integer wrap. Nearest
+// follows the reference step by step in the input's dtype
+// (reduce_coordinate, then the rounding), so that a point on a texel edge
+// rounds to the same side. Texel arithmetic is in the texture's dtype, with
+// the channel count (1, 3, 4) and whether a border constant is read fixed
+// at compile time (common.h specialized).
+//
+// The backward gives each point its uv gradient and scatters its texture
+// gradient by bands of rows (bands.h): no lock, no per-thread texture
+// copies, the same sums whatever the thread count.
+#include "bands.h"
+#include "common.h"
+#include "kernels.h"
+
+namespace difftex {
+namespace {
+
+enum Kind { NEAREST = 0, LINEAR = 1, CUBIC = 2 };
+
+template <int KIND>
+constexpr int taps_of() {
+  return KIND == NEAREST ? 1 : (KIND == LINEAR ? 2 : 4);
+}
+
+// One axis of a read: K texel indices (and whether each is a texel rather
+// than the border constant), their weights, d weight / d texel coordinate,
+// and d(folded u) / du.
+template <int K>
+struct Line {
+  int64_t i[K];
+  bool in[K];
+  double w[K], dw[K];
+  double slope;
+};
+
+// Keys cubic convolution (gather.py _cubic_near / _cubic_far) and its
+// derivative: near for |t| <= 1, far for 1 < |t| < 2.
+DT_INLINE double cubic_near(double t) { return ((kCubicA + 2) * t - (kCubicA + 3)) * t * t + 1; }
+DT_INLINE double cubic_near_d(double t) { return (3 * (kCubicA + 2) * t - 2 * (kCubicA + 3)) * t; }
+DT_INLINE double cubic_far(double t) { return ((kCubicA * t - 5 * kCubicA) * t + 8 * kCubicA) * t - 4 * kCubicA; }
+DT_INLINE double cubic_far_d(double t) { return (3 * kCubicA * t - 10 * kCubicA) * t + 8 * kCubicA; }
+
+template <int KIND, typename scalar_t>
+DT_INLINE Line<taps_of<KIND>()> line(scalar_t u, int64_t n, int mode) {
+  Line<taps_of<KIND>()> a;
+  if constexpr (KIND == NEAREST) {
+    // gather.py reduce_coordinate, then round(u * n - 0.5), in scalar_t.
+    scalar_t r = u;
+    if (mode == REPEAT) {
+      if (std::abs(u) >= 1) r = u - std::floor(u);
+    } else if (mode == MIRROR) {
+      if (std::abs(u) >= 2) r = u - 2 * std::floor(u / 2);
+    } else {
+      r = std::min(std::max(u, static_cast<scalar_t>(-kFarUv)), static_cast<scalar_t>(1 + kFarUv));
+    }
+    const scalar_t x = r * static_cast<scalar_t>(n) - static_cast<scalar_t>(0.5);
+    // Half to even: x (|x| < 9n + 1) rounded in double by the 1.5 * 2^52 shift, which is exact for it.
+    const double xd = static_cast<double>(x);
+    const double xr = std::abs(xd) < 0.5 * kTwo52 ? (xd + 1.5 * kTwo52) - 1.5 * kTwo52 : xd;
+    a.in[0] = wrap_int(index_of(xr), n, mode, &a.i[0]);
+    a.w[0] = 1.0;
+    a.dw[0] = 0.0;
+    a.slope = 1.0;
+  } else if constexpr (KIND == LINEAR) {
+    const Axis ax = place(fold(static_cast<double>(u), mode), n, mode);
+    a.i[0] = ax.i0; a.i[1] = ax.i1; a.in[0] = ax.in0; a.in[1] = ax.in1;
+    a.w[0] = 1 - ax.f; a.w[1] = ax.f; a.dw[0] = -1; a.dw[1] = 1;
+    a.slope = ax.slope;
+  } else {
+    const Folded fu = fold(static_cast<double>(u), mode);
+    const double x = fu.u * static_cast<double>(n) - 0.5, x0 = floor_capped(x);
+    const double t = std::abs(x) < kTwo52 ? x - x0 : 0.0;
+    const int64_t i = static_cast<int64_t>(x0);
+    for (int q = 0; q < 4; ++q) a.in[q] = wrap_int(i - 1 + q, n, mode, &a.i[q]);
+    a.w[0] = cubic_far(t + 1); a.w[1] = cubic_near(t); a.w[2] = cubic_near(1 - t); a.w[3] = cubic_far(2 - t);
+    a.dw[0] = cubic_far_d(t + 1); a.dw[1] = cubic_near_d(t); a.dw[2] = -cubic_near_d(1 - t);
+    a.dw[3] = -cubic_far_d(2 - t);
+    a.slope = fu.slope;
+  }
+  return a;
+}
+
+// The shapes and pointers of one call: texture [Bt, C, H, W], points
+// p = b * M + e of uv [B, M, 2]; per-point arrays [B, C, M] (values,
+// output gradients).
+template <typename scalar_t>
+struct Args {
+  int64_t Bt, C, H, W, M, plane;
+  int wrap_u, wrap_v;
+  scalar_t border;
+  const scalar_t* tex;
+  const scalar_t* uv;
+};
+
+// Points go through the kernel in blocks of kBlock: first every point's
+// taps along both axes (a loop without texel reads, which the compiler
+// vectorises: measured, the per-point coordinate arithmetic and the serial
+// texel-read latency made a one-point-at-a-time loop 6-8x slower than
+// grid_sample's vectorised kernel), then the texel reads, a short body per
+// point whose loads the CPU overlaps across points.
+constexpr int kBlock = 64;
+
+// One axis' taps of a block of points (structure of arrays).
+template <int K>
+struct Taps {
+  int32_t i[K][kBlock];
+  bool in[K][kBlock];
+  double w[K][kBlock], dw[K][kBlock], slope[kBlock];
+};
+
+constexpr double kBig = 1073741824.0;  // 2^30: coordinates past it go through line() (int32 indices)
+
+// floor(x) for |x| < 2^31, without a branch: a coordinate's fraction is
+// random from point to point, and the compare-and-branch of common.h's
+// floor_capped mispredicted half the time (measured: most of the kernel's
+// time); selects also let the compiler vectorise the loop.
+DT_INLINE double floor_near(double x) {
+  const double t = static_cast<double>(static_cast<int32_t>(x));  // truncation toward 0
+  return t - static_cast<double>(t > x);
+}
+
+// Bilinear / bicubic taps of cnt coordinates x[j] (finite, |x| < 2^30) along an axis of n texels, wrap MODE:
+// the values of line() (the same fold, floor, wrap), in a loop of selects the compiler vectorises.
+template <int KIND, int MODE>
+void taps_near(const double* x, int cnt, int64_t n, Taps<taps_of<KIND>()>& T) {
+  constexpr int K = taps_of<KIND>();
+  const double nd = static_cast<double>(n);
+  const int32_t ni = static_cast<int32_t>(n);
+  for (int j = 0; j < cnt; ++j) {
+    double u = x[j], slope = 1.0;
+    if (MODE == REPEAT) {
+      u = u - floor_near(u);
+    } else if (MODE == MIRROR) {
+      const double h = 0.5 * u, f = h - floor_near(h);
+      u = 1.0 - std::fabs(2.0 * f - 1.0);
+      slope = 1.0 - 2.0 * static_cast<double>(f >= 0.5);
+    }
+    double c = u * nd - 0.5;
+    if (MODE == CLAMP || MODE == BORDER) c = std::min(std::max(c, -kBig), kBig);
+    const double c0 = floor_near(c), t = c - c0;
+    const int32_t i = static_cast<int32_t>(c0);
+    T.slope[j] = slope;
+    for (int q = 0; q < K; ++q) {
+      int32_t r = i + q - (K == 4 ? 1 : 0);
+      bool in = true;
+      if (MODE == REPEAT) {  // r in [-2, n + 1]: one period off at most (n = 1: clamped below)
+        r += r < 0 ? ni : 0;
+        r -= r >= ni ? ni : 0;
+      } else if (MODE == MIRROR) {
+        r = r < 0 ? -1 - r : r;
+        r = r >= ni ? 2 * ni - 1 - r : r;
+      } else if (MODE == BORDER) {
+        in = r >= 0 && r < ni;
+      }
+      r = r < 0 ? 0 : (r >= ni ? ni - 1 : r);  // clamp; a no-op for repeat / mirror from n = 2 on
+      T.i[q][j] = r;
+      T.in[q][j] = in;
+    }
+    if constexpr (KIND == LINEAR) {
+      T.w[0][j] = 1.0 - t; T.w[1][j] = t; T.dw[0][j] = -1.0; T.dw[1][j] = 1.0;
+    } else {
+      T.w[0][j] = cubic_far(t + 1); T.w[1][j] = cubic_near(t); T.w[2][j] = cubic_near(1 - t);
+      T.w[3][j] = cubic_far(2 - t);
+      T.dw[0][j] = cubic_far_d(t + 1); T.dw[1][j] = cubic_near_d(t); T.dw[2][j] = -cubic_near_d(1 - t);
+      T.dw[3][j] = -cubic_far_d(2 - t);
+    }
+  }
+}
+
+// The taps of a block's coordinates x[j] (from uv of dtype scalar_t) along an axis of n texels.
+template <int KIND, typename scalar_t>
+void taps_block(const double* x, int cnt, int64_t n, int mode, Taps<taps_of<KIND>()>& T) {
+  constexpr int K = taps_of<KIND>();
+  if constexpr (KIND != NEAREST) {
+    switch (mode) {
+      case REPEAT: taps_near<KIND, REPEAT>(x, cnt, n, T); break;
+      case CLAMP: taps_near<KIND, CLAMP>(x, cnt, n, T); break;
+      case MIRROR: taps_near<KIND, MIRROR>(x, cnt, n, T); break;
+      default: taps_near<KIND, BORDER>(x, cnt, n, T);
+    }
+  }
+  // Nearest, and the far or non-finite coordinates of the others: line(), one point at a time.
+  for (int j = 0; j < cnt; ++j) {
+    if (KIND != NEAREST && std::abs(x[j]) < kBig) continue;  // NaN fails the test too
+    const auto a = line<KIND>(static_cast<scalar_t>(x[j]), n, mode);
+    for (int q = 0; q < K; ++q) {
+      const int64_t i = a.i[q];
+      T.i[q][j] = static_cast<int32_t>(i);
+      T.in[q][j] = a.in[q];
+      T.w[q][j] = a.w[q];
+      T.dw[q][j] = a.dw[q];
+    }
+    T.slope[j] = a.slope;
+  }
+}
+
+// The first row point j of a block writes (its band's key): the wrapped
+// first tap for repeat (its rows run on cyclically from there), else the
+// least row read; -1 where every tap reads the border constant.
+template <int K>
+DT_INLINE int64_t first_row(const Taps<K>& T, int j, int mode) {
+  if (mode == REPEAT) return T.i[0][j];
+  int64_t r = -1;
+  for (int q = 0; q < K; ++q)
+    if (T.in[q][j] && (r < 0 || T.i[q][j] < r)) r = T.i[q][j];
+  return r;
+}
+
+// The block's points: indices p into [B * M], their coordinates and
+// whether both are finite.
+template <typename scalar_t, int KIND>
+struct Block {
+  static constexpr int K = taps_of<KIND>();
+  int cnt;
+  int64_t p[kBlock];
+  double u[kBlock], v[kBlock];
+  bool ok[kBlock];
+  Taps<K> x, y;
+
+  void load(const scalar_t* uv, int64_t W, int64_t H, int wrap_u, int wrap_v) {
+    for (int j = 0; j < cnt; ++j) {
+      u[j] = static_cast<double>(uv[2 * p[j]]);
+      v[j] = static_cast<double>(uv[2 * p[j] + 1]);
+      ok[j] = std::isfinite(u[j]) && std::isfinite(v[j]);
+    }
+    taps_block<KIND, scalar_t>(u, cnt, W, wrap_u, x);
+    taps_block<KIND, scalar_t>(v, cnt, H, wrap_v, y);
+  }
+};
+
+// Prefetches the texel rows of a block's points in the C planes of tex
+// (write: for the gradient's scatter) before its loop reads them: the
+// points of a view walk across the texture, so nearly every point needs
+// lines that no cache holds, and one point's loads after another's left
+// the loop waiting on memory latency (measured: 2-3x the time of the
+// same loop over a texture in L1). Issued for the whole block at once,
+// the misses overlap.
+#if defined(__GNUC__) || defined(__clang__)
+#define DT_PREFETCH(addr, write) __builtin_prefetch((addr), (write) ? 1 : 0, 3)
+#else
+#define DT_PREFETCH(addr, write) ((void)(addr))
+#endif
+
+template <typename scalar_t, int KIND, bool kWrite>
+DT_INLINE void prefetch_block(const Block<scalar_t, KIND>& bl, const scalar_t* tex, int64_t C, int64_t Bt,
+                              int64_t M, int64_t W, int64_t plane) {
+  constexpr int K = taps_of<KIND>();
+  for (int j = 0; j < bl.cnt; ++j) {
+    if (!bl.ok[j]) continue;
+    const int64_t b = Bt == 1 ? 0 : bl.p[j] / M;
+    const scalar_t* t = tex + b * C * plane;
+    for (int r = 0; r < K; ++r) {
+      const scalar_t* row = t + static_cast<int64_t>(bl.y.i[r][j]) * W;
+      for (int64_t c = 0; c < C; ++c) {
+        DT_PREFETCH(row + c * plane + bl.x.i[0][j], kWrite);
+        if (K > 1) DT_PREFETCH(row + c * plane + bl.x.i[K - 1][j], kWrite);
+      }
+    }
+  }
+}
+
+template <typename scalar_t, int KIND, int CC, bool kBorder>
+void forward_range(int64_t lo, int64_t hi, const Args<scalar_t>& A, scalar_t* out) {
+  constexpr int K = taps_of<KIND>();
+  const int64_t C = CC > 0 ? CC : A.C, M = A.M;
+  Block<scalar_t, KIND> bl;
+  for (int64_t s = lo; s < hi; s += kBlock) {
+    bl.cnt = static_cast<int>(std::min<int64_t>(kBlock, hi - s));
+    for (int j = 0; j < bl.cnt; ++j) bl.p[j] = s + j;
+    bl.load(A.uv, A.W, A.H, A.wrap_u, A.wrap_v);
+    prefetch_block<scalar_t, KIND, false>(bl, A.tex, C, A.Bt, M, A.W, A.plane);
+    int64_t b = s / M, e = s - b * M;
+    for (int j = 0; j < bl.cnt; ++j, ++e) {
+      if (e == M) e = 0, ++b;
+      scalar_t* o = out + b * C * M + e;
+      if (!bl.ok[j]) {
+        for (int64_t c = 0; c < C; ++c) o[c * M] = std::numeric_limits<scalar_t>::quiet_NaN();
+        continue;
+      }
+      const scalar_t* t = A.tex + (A.Bt == 1 ? 0 : b) * C * A.plane;
+      scalar_t wx[K], wy[K];
+      int64_t cols[K], rows[K];
+      for (int q = 0; q < K; ++q) {
+        wx[q] = static_cast<scalar_t>(bl.x.w[q][j]);
+        wy[q] = static_cast<scalar_t>(bl.y.w[q][j]);
+        cols[q] = bl.x.i[q][j];
+        rows[q] = bl.y.i[q][j] * A.W;
+      }
+      for (int64_t c = 0; c < C; ++c) {
+        const scalar_t* tc = t + c * A.plane;
+        scalar_t sum = 0;
+        for (int r = 0; r < K; ++r) {
+          const scalar_t* row = tc + rows[r];
+          scalar_t acc = 0;
+          for (int q = 0; q < K; ++q)
+            acc += wx[q] * (!kBorder || (bl.y.in[r][j] && bl.x.in[q][j]) ? row[cols[q]] : A.border);
+          sum += wy[r] * acc;
+        }
+        o[c * M] = sum;
+      }
+    }
+  }
+}
+
+// The backward of a block's points: their uv gradients (guv not null) and
+// texture gradients scattered into gt (not null).
+template <typename scalar_t, int KIND, int CC, bool kBorder>
+void backward_block(Block<scalar_t, KIND>& bl, const Args<scalar_t>& A, const scalar_t* grad, scalar_t* gt,
+                    scalar_t* guv) {
+  constexpr int K = taps_of<KIND>();
+  const int64_t C = CC > 0 ? CC : A.C, M = A.M;
+  bl.load(A.uv, A.W, A.H, A.wrap_u, A.wrap_v);
+  if (guv != nullptr) prefetch_block<scalar_t, KIND, false>(bl, A.tex, C, A.Bt, M, A.W, A.plane);
+  if (gt != nullptr) prefetch_block<scalar_t, KIND, true>(bl, gt, C, A.Bt, M, A.W, A.plane);
+  for (int j = 0; j < bl.cnt; ++j) {
+    if (!bl.ok[j]) continue;
+    const int64_t p = bl.p[j], b = p / M, e = p - b * M;
+    const scalar_t* g = grad + b * C * M + e;
+    scalar_t wx[K], wy[K];
+    int64_t cols[K], rows[K];
+    for (int q = 0; q < K; ++q) {
+      wx[q] = static_cast<scalar_t>(bl.x.w[q][j]);
+      wy[q] = static_cast<scalar_t>(bl.y.w[q][j]);
+      cols[q] = bl.x.i[q][j];
+      rows[q] = bl.y.i[q][j] * A.W;
+    }
+    if (KIND != NEAREST && guv != nullptr) {
+      const scalar_t* t = A.tex + (A.Bt == 1 ? 0 : b) * C * A.plane;
+      scalar_t dx[K], dy[K];
+      for (int q = 0; q < K; ++q) dx[q] = static_cast<scalar_t>(bl.x.dw[q][j]), dy[q] = static_cast<scalar_t>(bl.y.dw[q][j]);
+      scalar_t sx = 0, sy = 0;
+      for (int64_t c = 0; c < C; ++c) {
+        const scalar_t* tc = t + c * A.plane;
+        scalar_t cx = 0, cy = 0;
+        for (int r = 0; r < K; ++r) {
+          const scalar_t* row = tc + rows[r];
+          scalar_t rx = 0, rv = 0;
+          for (int q = 0; q < K; ++q) {
+            const scalar_t val = !kBorder || (bl.y.in[r][j] && bl.x.in[q][j]) ? row[cols[q]] : A.border;
+            rx += dx[q] * val;
+            rv += wx[q] * val;
+          }
+          cx += wy[r] * rx;
+          cy += dy[r] * rv;
+        }
+        sx += g[c * M] * cx;
+        sy += g[c * M] * cy;
+      }
+      guv[2 * p] = static_cast<scalar_t>(sx * bl.x.slope[j] * static_cast<double>(A.W));
+      guv[2 * p + 1] = static_cast<scalar_t>(sy * bl.y.slope[j] * static_cast<double>(A.H));
+    }
+    if (gt != nullptr) {
+      scalar_t* tg = gt + (A.Bt == 1 ? 0 : b) * C * A.plane;
+      for (int64_t c = 0; c < C; ++c) {
+        const scalar_t gc = g[c * M];
+        scalar_t* tc = tg + c * A.plane;
+        for (int r = 0; r < K; ++r) {
+          if (kBorder && !bl.y.in[r][j]) continue;
+          scalar_t* row = tc + rows[r];
+          const scalar_t gr = gc * wy[r];
+          for (int q = 0; q < K; ++q)
+            if (!kBorder || bl.x.in[q][j]) row[cols[q]] += gr * wx[q];
+        }
+      }
+    }
+  }
+}
+
+template <typename scalar_t>
+Args<scalar_t> args_of(const torch::Tensor& texture, const torch::Tensor& uv, const ReadOptions& opts) {
+  Args<scalar_t> A;
+  A.Bt = texture.size(0); A.C = texture.size(1); A.H = texture.size(2); A.W = texture.size(3);
+  A.M = uv.size(1); A.plane = A.H * A.W;
+  A.wrap_u = static_cast<int>(opts.wrap_u); A.wrap_v = static_cast<int>(opts.wrap_v);
+  A.border = static_cast<scalar_t>(opts.border);
+  A.tex = texture.data_ptr<scalar_t>();
+  A.uv = uv.data_ptr<scalar_t>();
+  return A;
+}
+
+void check_inputs(const torch::Tensor& texture, const torch::Tensor& uv, int64_t kind) {
+  TORCH_CHECK(kind >= NEAREST && kind <= CUBIC, "sample: kind must be a filter code 0-2, got ", kind);
+  TORCH_CHECK(texture.dim() == 4 && texture.is_contiguous() && texture.device().is_cpu() &&
+                  texture.size(1) >= 1 && texture.size(2) >= 1 && texture.size(3) >= 1,
+              "sample: texture must be a contiguous CPU tensor [Bt, C, H, W] with C, H, W >= 1");
+  TORCH_CHECK(uv.dim() == 3 && uv.size(2) == 2 && uv.is_contiguous() && uv.scalar_type() == texture.scalar_type(),
+              "sample: uv must be contiguous [B, M, 2] of the texture's dtype");
+  TORCH_CHECK(texture.size(0) == 1 || texture.size(0) == uv.size(0),
+              "sample: the texture batch must be 1 or uv's batch");
+  TORCH_CHECK(texture.size(2) < (1 << 30) && texture.size(3) < (1 << 30),
+              "sample: texture sides must be under 2^30 texels (int32 indices)");
+}
+
+// Runs f(std::integral_constant<int, KIND>) for the filter code.
+template <typename F>
+void with_kind(int64_t kind, F&& f) {
+  switch (kind) {
+    case NEAREST: f(std::integral_constant<int, NEAREST>()); break;
+    case LINEAR: f(std::integral_constant<int, LINEAR>()); break;
+    default: f(std::integral_constant<int, CUBIC>());
+  }
+}
+
+}  // namespace
+
+torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, const ReadOptions& opts) {
+  check_inputs(texture, uv, kind);
+  const int64_t B = uv.size(0), C = texture.size(1), M = uv.size(1);
+  auto out = torch::empty({B, C, M}, uv.options());
+  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "sample_forward", [&] {
+    const Args<scalar_t> A = args_of<scalar_t>(texture, uv, opts);
+    scalar_t* po = out.data_ptr<scalar_t>();
+    with_kind(kind, [&](auto k) {
+      specialized(C, opts.wrap_u, opts.wrap_v, [&](auto cc, auto border_) {
+        at::parallel_for(0, B * M, 2048, [&](int64_t lo, int64_t hi) {
+          forward_range<scalar_t, decltype(k)::value, decltype(cc)::value, decltype(border_)::value>(lo, hi, A, po);
+        });
+      });
+    });
+  });
+  return out;
+}
+
+std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, torch::Tensor uv, torch::Tensor grad,
+                                                         int64_t kind, const ReadOptions& opts, bool need_texture,
+                                                         bool need_uv) {
+  check_inputs(texture, uv, kind);
+  const int64_t B = uv.size(0), Bt = texture.size(0), C = texture.size(1), H = texture.size(2), M = uv.size(1);
+  grad = grad.contiguous();
+  TORCH_CHECK(grad.dim() == 3 && grad.size(0) == B && grad.size(1) == C && grad.size(2) == M &&
+                  grad.scalar_type() == uv.scalar_type(), "sample_backward: grad must be [B, C, M] of uv's dtype");
+  need_uv = need_uv && kind != NEAREST;
+  torch::Tensor gt = need_texture ? torch::zeros_like(texture) : torch::Tensor();
+  torch::Tensor guv = need_uv ? torch::zeros_like(uv) : torch::Tensor();
+  if (!need_texture && !need_uv) return {gt, guv};
+  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "sample_backward", [&] {
+    const Args<scalar_t> A = args_of<scalar_t>(texture, uv, opts);
+    const scalar_t* pg = grad.data_ptr<scalar_t>();
+    scalar_t* pgt = need_texture ? gt.data_ptr<scalar_t>() : nullptr;
+    scalar_t* pguv = need_uv ? guv.data_ptr<scalar_t>() : nullptr;
+    with_kind(kind, [&](auto k) {
+      constexpr int KIND = decltype(k)::value;
+      specialized(C, opts.wrap_u, opts.wrap_v, [&](auto cc, auto border_) {
+        constexpr int CC = decltype(cc)::value;
+        constexpr bool kB = decltype(border_)::value;
+        // The points of idx[0, n) in blocks: uv gradients, and texture gradients into tex (or none).
+        auto blocks = [&](const int64_t* idx, int64_t n, scalar_t* tex) {
+          Block<scalar_t, KIND> bl;
+          for (int64_t s = 0; s < n; s += kBlock) {
+            bl.cnt = static_cast<int>(std::min<int64_t>(kBlock, n - s));
+            for (int j = 0; j < bl.cnt; ++j) bl.p[j] = idx[s + j];
+            backward_block<scalar_t, KIND, CC, kB>(bl, A, pg, tex, pguv);
+          }
+        };
+        if (!need_texture) {
+          at::parallel_for(0, B * M, 2048, [&](int64_t lo, int64_t hi) {
+            std::vector<int64_t> idx(hi - lo);
+            for (int64_t p = lo; p < hi; ++p) idx[p - lo] = p;
+            blocks(idx.data(), hi - lo, nullptr);
+          });
+          return;
+        }
+        // Bands of rows per texture: key = texture * nb + band, class = band parity.
+        const int64_t nb = band_count(H, taps_of<KIND>());
+        std::vector<int32_t> classes(Bt * nb);
+        for (int64_t i = 0; i < Bt * nb; ++i) classes[i] = nb > 1 ? static_cast<int32_t>(i % nb % 2) : 0;
+        std::vector<int32_t> keys(B * M);
+        at::parallel_for(0, B * M, 4096, [&](int64_t lo, int64_t hi) {
+          std::vector<int64_t> border_only;  // every tap on the border constant: the uv gradient alone
+          Taps<taps_of<KIND>()> ty;
+          double v[kBlock];
+          for (int64_t s = lo; s < hi; s += kBlock) {
+            const int cnt = static_cast<int>(std::min<int64_t>(kBlock, hi - s));
+            for (int j = 0; j < cnt; ++j) v[j] = static_cast<double>(A.uv[2 * (s + j) + 1]);
+            taps_block<KIND, scalar_t>(v, cnt, H, A.wrap_v, ty);
+            for (int j = 0; j < cnt; ++j) {
+              const int64_t p = s + j;
+              if (!std::isfinite(A.uv[2 * p]) || !std::isfinite(v[j])) {
+                keys[p] = -1;
+                continue;
+              }
+              const int64_t r = first_row(ty, j, A.wrap_v);
+              keys[p] = r < 0 ? -1 : static_cast<int32_t>((Bt == 1 ? 0 : p / M) * nb + band_of(r, H, nb));
+              if (r < 0 && pguv != nullptr) border_only.push_back(p);
+            }
+          }
+          blocks(border_only.data(), static_cast<int64_t>(border_only.size()), nullptr);
+        });
+        run_banded(keys.data(), B * M, classes, [&](const int64_t* idx, int64_t n) { blocks(idx, n, pgt); });
+      });
+    });
+  });
+  return {gt, guv};
+}
+
+}  // namespace difftex

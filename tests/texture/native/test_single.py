@@ -1,0 +1,170 @@
+"""The native single-level reads (csrc/single.cpp) and the threaded taps backward, against the gather reference.
+
+Nearest / bilinear / bicubic, every wrap mode on each axis, float32 and
+float64: values and the gradients of texture and uv equal to the reference
+(``difftex.backend("reference")``) within 1e-5 (float32) and 1e-12
+(float64), relative to the largest entry for the texture gradient, which
+sums many terms. The texture gradient's scatter by bands of rows
+(csrc/bands.h) runs a class of bands threaded from 1024 points on: cases with more points
+than that check it against the reference, and that one and two threads
+give bit-identical gradients.
+"""
+from __future__ import annotations
+
+import itertools
+
+import pytest
+import torch
+
+import difftex
+from difftex.texture import native
+from difftex.texture.filters import gather
+from tests.conftest import use_backend
+
+f32, f64 = torch.float32, torch.float64
+BUILT = native.load() is not None
+pytestmark = pytest.mark.skipif(not BUILT, reason="native kernel not built here (no compiler or ninja)")
+WRAPS = ("repeat", "clamp", "mirror", "border")
+TOL = {f32: 1e-5, f64: 1e-12}
+
+
+def _inputs(dtype, B=1, Bt=1, C=3, H=7, W=10, Ho=9, Wo=11, seed=0, spread=4.0):
+    g = torch.Generator().manual_seed(seed)
+    tex = torch.rand(Bt, C, H, W, generator=g, dtype=dtype)
+    uv = torch.rand(B, Ho, Wo, 2, generator=g, dtype=dtype) * spread - (spread - 1) / 2  # past every edge
+    return tex, uv
+
+
+def _read(backend, tex, uv, filter, wrap, border=0.25):
+    """Values and (texture, uv) gradients of one read under ``backend``, for a fixed random output weight."""
+    t, u = tex.detach().clone().requires_grad_(), uv.detach().clone().requires_grad_()
+    with use_backend(backend):
+        out = difftex.sample(t, u, filter=filter, wrap=wrap, border_value=border)
+        w = torch.randn(out.shape, generator=torch.Generator().manual_seed(7), dtype=out.dtype)
+        gt, gu = torch.autograd.grad((out * w).sum(), (t, u))
+    return out.detach(), gt, gu
+
+
+def _assert_matches(tex, uv, filter, wrap, tol):
+    out, gt, gu = _read("native", tex, uv, filter, wrap)
+    ref, rt, ru = _read("reference", tex, uv, filter, wrap)
+    torch.testing.assert_close(out, ref, atol=tol, rtol=tol, equal_nan=True)
+    s = max(1.0, rt.abs().max().item())
+    torch.testing.assert_close(gt, rt, atol=tol * s, rtol=tol, msg=lambda m: f"texture gradient: {m}")
+    s = max(1.0, ru.abs().max().item())
+    torch.testing.assert_close(gu, ru, atol=tol * s, rtol=tol, msg=lambda m: f"uv gradient: {m}")
+
+
+@pytest.mark.parametrize("dtype", [f32, f64], ids=["float32", "float64"])
+@pytest.mark.parametrize("wrap", list(itertools.product(WRAPS, WRAPS)), ids="-".join)
+@pytest.mark.parametrize("filter", ["nearest", "bilinear", "bicubic"])
+def test_the_kernel_gives_the_reference_values_and_gradients(filter, wrap, dtype):
+    tex, uv = _inputs(dtype, seed=hash((filter, wrap)) % 1000)
+    _assert_matches(tex, uv, filter, wrap, TOL[dtype])
+
+
+@pytest.mark.parametrize("C", [1, 2, 4])  # 1 and 4 fixed at compile time, 2 at run time
+@pytest.mark.parametrize("B, Bt", [(2, 2), (3, 1)])
+def test_batches_channels_and_non_contiguous_inputs(B, Bt, C):
+    tex, uv = _inputs(f64, B=B, Bt=Bt, C=C, H=6, W=5)
+    tex = tex.transpose(2, 3).contiguous().transpose(2, 3)
+    uv = uv.transpose(1, 2).contiguous().transpose(1, 2)
+    assert not tex.is_contiguous() and not uv.is_contiguous()
+    for filter in ("bilinear", "bicubic"):
+        _assert_matches(tex, uv, filter, ("mirror", "border"), TOL[f64])
+
+
+@pytest.mark.parametrize("filter", ["bilinear", "bicubic"])
+@pytest.mark.parametrize("wrap", [("repeat", "clamp"), ("mirror", "border")])
+def test_gradcheck_through_the_kernel(filter, wrap):
+    tex, uv = _inputs(f64, H=5, W=6, Ho=3, Wo=4)
+    tex.requires_grad_()
+    uv.requires_grad_()
+    with use_backend("native"):
+        f = lambda t, u: difftex.sample(t, u, filter=filter, wrap=wrap, border_value=0.5)
+        assert torch.autograd.gradcheck(f, (tex, uv), atol=1e-7, rtol=1e-6)
+        # Double backward runs the differentiable reference backward.
+        assert torch.autograd.gradgradcheck(f, (tex, uv), atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("filter", ["nearest", "bilinear", "bicubic"])
+def test_a_nan_uv_stays_in_its_pixel(filter):
+    tex, uv = _inputs(f32, Ho=4, Wo=5)
+    uv[0, 1, 2, 0] = float("nan")
+    uv[0, 3, 0, 1] = float("inf")
+    out, gt, gu = _read("native", tex, uv, filter, "repeat")
+    ref, rt, ru = _read("reference", tex, uv, filter, "repeat")
+    bad = ~torch.isfinite(uv).all(-1)
+    assert torch.isnan(out[:, :, bad[0]]).all() and torch.isfinite(out[:, :, ~bad[0]]).all()
+    torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-5, equal_nan=True)
+    assert torch.isfinite(gt).all() and torch.isfinite(gu).all()
+    assert (gu[bad] == 0).all()
+    torch.testing.assert_close(gt, rt, atol=1e-5, rtol=1e-5)
+
+
+def test_huge_and_far_uv_read_as_the_reference():
+    # float32 uv far outside [0, 1]: the folding (repeat, mirror) and the clamping keep their texels.
+    tex, uv = _inputs(f32, Ho=3, Wo=4)
+    uv[0, 0] = torch.tensor([[1e30, -1e30], [3e7 + 0.25, -5e6 - 0.75], [-20.3, 41.6], [1e-30, 1 - 1e-7]])
+    for filter, wrap in itertools.product(("nearest", "bilinear", "bicubic"), WRAPS):
+        out, *_ = _read("native", tex, uv, filter, wrap)
+        ref, *_ = _read("reference", tex, uv, filter, wrap)
+        torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-5, msg=lambda m: f"{filter} {wrap}: {m}")
+
+
+def _threads(n, fn):
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        return fn()
+    finally:
+        torch.set_num_threads(old)
+
+
+@pytest.mark.parametrize("filter", ["nearest", "bilinear", "bicubic"])
+def test_the_banded_scatter_over_threads_gives_the_reference_bit_for_bit_at_any_thread_count(filter):
+    # 16000 points over a 40-row texture: bands of 4-8 rows, both parities busy, on two threads.
+    tex, uv = _inputs(f64, B=2, Bt=2, H=40, W=24, Ho=80, Wo=100, seed=3, spread=1.5)
+    for wrap in (("repeat", "mirror"), ("clamp", "repeat"), ("border", "border")):
+        one = _threads(1, lambda: _read("native", tex, uv, filter, wrap))
+        two = _threads(2, lambda: _read("native", tex, uv, filter, wrap))
+        for a, b in zip(one, two):
+            assert torch.equal(a, b)
+        _assert_matches(tex, uv, filter, wrap, TOL[f64])
+
+
+@pytest.mark.parametrize("filter", ["trilinear", "anisotropic"])
+@pytest.mark.parametrize("wrap", [("repeat", "mirror"), ("mirror", "repeat"), ("clamp", "border")])
+def test_the_threaded_taps_backward_gives_the_reference(filter, wrap):
+    # Enough points (8100) for the taps' banded scatter on two threads, footprints over several levels and scales.
+    g = torch.Generator().manual_seed(5)
+    tex = torch.rand(1, 3, 64, 48, generator=g, dtype=f64)
+    uv = torch.rand(1, 90, 90, 2, generator=g, dtype=f64) * 3 - 1
+    dx = torch.randn(1, 90, 90, 2, generator=g, dtype=f64) * torch.exp(torch.randn(1, 90, 90, 1, generator=g) * 2) * 0.02
+    dy = torch.randn(1, 90, 90, 2, generator=g, dtype=f64) * 0.01
+
+    def run(backend):
+        t, u = tex.clone().requires_grad_(), uv.clone().requires_grad_()
+        with use_backend(backend):
+            out = difftex.sample(t, u, filter=filter, wrap=wrap, uv_dx=dx, uv_dy=dy, border_value=0.25, max_aniso=4)
+            w = torch.randn(out.shape, generator=torch.Generator().manual_seed(1), dtype=f64)
+            return (out.detach(), *torch.autograd.grad((out * w).sum(), (t, u)))
+
+    one = _threads(1, lambda: run("native"))
+    two = _threads(2, lambda: run("native"))
+    ref = run("reference")
+    for a, b in zip(one, two):
+        assert torch.equal(a, b)
+    for name, a, b in zip(("values", "texture", "uv"), two, ref):
+        s = max(1.0, b.abs().max().item())
+        torch.testing.assert_close(a, b, atol=1e-10 * s, rtol=1e-9, msg=lambda m: f"{name}: {m}")
+
+
+def test_the_kernel_constants_are_the_reference_ones():
+    k = native.load()
+    assert k.CUBIC_A == gather._CUBIC_A and k.FAR_UV == gather._FAR
+    assert k.KIND_CODES == {"nearest": 0, "linear": 1, "cubic": 2}
+    with pytest.raises(RuntimeError, match="kind must be a filter code 0-2, got 3"):
+        k.sample(torch.zeros(1, 1, 2, 2), torch.zeros(1, 1, 2), 3, k.ReadOptions(wrap_u=0, wrap_v=0))
+    with pytest.raises(RuntimeError, match="uv must be contiguous"):
+        k.sample(torch.zeros(1, 1, 2, 2), torch.zeros(1, 1, 2, dtype=f64), 1, k.ReadOptions(wrap_u=0, wrap_v=0))
