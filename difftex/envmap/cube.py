@@ -90,7 +90,8 @@ from ..texture.filters.separable import separable_sample
 from ..texture.filters.trilinear import mip_blend, per_level, spread_taps
 from ..texture.options import (DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_bias, check_filter,
                                check_number)
-from ..texture.lod import level, log2_length
+from ..texture.filters.ewa import ALPHA, MAX_MINOR, _covariance
+from ..texture.lod import ellipse, footprint, level, log2_length
 from ..texture.pyramid.mipmap import Pyramid, level_count, mipmap
 from ..texture.sample import sample
 from ..texture.taps import taps
@@ -100,9 +101,11 @@ from .directions import _face_coords, cube_to_direction, direction_to_cube
 #: Width, in [-1, 1] face coordinates, of the band along each edge over which the trilinear level
 #: blends with the neighbouring face's (see ``_log2_length``).
 EDGE_BAND = 0.25
+#: Squared padding (level-D texels) added to the EWA ellipse's half-axes before the taps are laid out: pbrt's 1.
+EWA_PAD = 0.0
 
 #: Filters of ``difftex.sample`` that cubemap rejects (module docstring).
-_UNSUPPORTED = ("ewa", "ripmap", "sat")
+_UNSUPPORTED = ("ripmap", "sat")
 #: Gutter width (texels) each single-level filter needs: its taps reach this far past a face edge.
 GUTTER = {"nearest": 1, "bilinear": 1, "bicubic": 2}
 
@@ -338,10 +341,10 @@ def cubemap(
     check_same("dirs", dirs, "cube", base)
     check_filter(filter)
     if filter in _UNSUPPORTED:
-        # EWA's texel windows, the ripmap's and the summed-area table's face-aligned boxes cannot cross cube edges.
+        # The ripmap's and the summed-area table's face-aligned boxes cannot cross cube edges.
         ok = tuple(SEPARABLE) + tuple(f for f in MIP_FILTERS if f not in _UNSUPPORTED)
-        raise ValueError(f"filter: {filter!r} is not supported by cubemap (its texel windows cannot cross cube "
-                         f"edges); expected one of {ok}")
+        raise ValueError(f"filter: {filter!r} is not supported by cubemap (its face-aligned boxes cannot cross "
+                         f"cube edges); expected one of {ok}")
     max_aniso = check_number("max_aniso", max_aniso, 1, MAX_ANISO)
     tolerance = check_number("tolerance", tolerance, 0)
     Bt, _, C, S, _ = base.shape
@@ -570,8 +573,16 @@ def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tenso
     if isinstance(bias, Tensor):
         bias = flat(bias) if bias.dim() == 3 else bias
     L = min(len(levels), level_count(S, S))
+    weight = point = None
     if log2_len is not None:
         D, axis, count = level(flat(log2_len.unsqueeze(-1)).squeeze(-1), bias, L), None, None
+    elif filter == "ewa":
+        sub = lambda t, idx: t.index_select(0, idx) if isinstance(t, Tensor) and t.dim() == 1 else t
+        D = _ewa_lod(dx, dy, bias, S, L, max_aniso)
+        # The level, continuous across edges as trilinear's; the ellipse stays the own face's.
+        D = _edge_blend(D, flat(dirs), [flat(d) for d in dds], fc, pts,
+                        lambda a, b, idx: _ewa_lod(a, b, sub(bias, idx), S, L, max_aniso))
+        point, tap, weight, count = _ewa_taps(pts, dx, dy, D, S, L, max_aniso)
     else:
         D, axis, count = taps(filter, dx, dy, bias, S, S, L, max_aniso, tolerance)
         # The level, continuous across edges as trilinear's; the tap count and axis stay the own face's.
@@ -579,8 +590,11 @@ def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tenso
         D = _edge_blend(D, flat(dirs), [flat(d) for d in dds], fc, pts,
                         lambda a, b, idx: taps(filter, a, b, sub(bias, idx), S, S, L, max_aniso, tolerance)[0])
     nearest = filter == "nearest-mip"
-    point = None
-    if count is not None:
+    if weight is not None:
+        fc = fc.index_select(0, point)
+        fc, tap = direction_to_cube(cube_to_direction(fc, tap))
+        pts, D = tap, D.index_select(0, point)
+    elif count is not None:
         # One entry per tap, at the tap's own face: a tap past an edge is
         # reprojected (face plane -> direction -> face), so taps follow the
         # great circle of the major axis onto the neighbouring faces.
@@ -606,6 +620,57 @@ def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tenso
                 else torch.cumsum(count.view(B, P).sum(1), 0).tolist())
         starts = [0] + ends[:-1]
         vals = torch.cat([run(b, slice(s, e)) for b, (s, e) in enumerate(zip(starts, ends))], 1)
-    if point is not None:
+    if weight is not None:
+        vals = vals.new_zeros((C, B * P)).index_add(1, point, vals * weight)
+    elif point is not None:
         vals = vals.new_zeros((C, B * P)).index_add(1, point, vals / nt)
     return vals.view(C, B, H, W).transpose(0, 1)
+
+
+def _ewa_lod(dx: Tensor, dy: Tensor, bias: Union[float, Tensor], S: int, L: int, max_aniso: float) -> Tensor:
+    """EWA's level on faces of S texels: ``log2`` of the minor axis grown to ``major / max_aniso`` (as ``sample``)."""
+    fp = footprint(dx, dy, S, S)
+    return level(_covariance(fp, ellipse(fp), max_aniso)[2], bias, L)
+
+
+def _ewa_taps(uv: Tensor, dx: Tensor, dy: Tensor, D: Tensor, S: int, L: int,
+              max_aniso: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """EWA's Gaussian as a lattice of taps in the face plane (module docstring).
+
+    uv, dx, dy: [M, 2] face uv and its derivatives; D: [M] the (edge-blended)
+    level. Returns (point [T] int64, taps [T, 2] in the point's face plane
+    (any uv, reprojected by the caller), normalised weights [T], count [M]),
+    taps ordered by point; differentiable in uv, dx, dy and D.
+    """
+    fp = footprint(dx, dy, S, S)
+    ell = ellipse(fp)
+    _, minor, _ = _covariance(fp, ell, max_aniso)
+    scale = torch.exp2(fp.log2_scale)
+    texel = torch.exp2(D)  # a level-D texel, in level-0 texels
+    # Half-axes in level-D texels; where the level is clamped (finest or coarsest) the minor axis may leave
+    # [1, 2): beyond MAX_MINOR it is shrunk, shape kept, as sample's EWA does on its coarsest level.
+    a, b = ell.major * scale / texel, minor * scale / texel
+    shrink = (MAX_MINOR / b.clamp_min(MAX_MINOR)).detach()
+    a, b = (a * shrink).clamp_max(max_aniso * MAX_MINOR), b * shrink
+    # pbrt's unit-texel padding; the taps sit about a level-D texel apart along each axis.
+    ra, rb = torch.sqrt(a * a + EWA_PAD), torch.sqrt(b * b + EWA_PAD)
+    with torch.no_grad():
+        # At most a texel apart; the + 0.5 keeps the counts' steps off the common half-axes (1 and 2 texels
+        # across, exactly, wherever the level is not clamped) so that rounding does not flip them.
+        na = torch.ceil(2 * ra + 0.5).long()
+        nb = torch.ceil(2 * rb + 0.5).long()
+        count = na * nb
+        point = torch.repeat_interleave(torch.arange(uv.shape[0], device=uv.device), count)
+        i = torch.arange(point.numel(), device=uv.device) - (torch.cumsum(count, 0) - count).index_select(0, point)
+        nbp = nb.index_select(0, point)
+        xi = ((i // nbp).to(uv.dtype) + 0.5) / na.index_select(0, point).to(uv.dtype) * 2 - 1
+        eta = ((i % nbp).to(uv.dtype) + 0.5) / nbp.to(uv.dtype) * 2 - 1
+        w = (torch.exp(-ALPHA * (xi * xi + eta * eta)) - math.exp(-ALPHA)).clamp_min(0)
+        w = w / w.new_zeros(uv.shape[0]).index_add(0, point, w).index_select(0, point)
+    e = ell.direction
+    perp = torch.stack([-e[:, 1], e[:, 0]], -1)
+    # level-D texels -> face uv
+    k = (texel / S).unsqueeze(-1)
+    off = ((ra * k[:, 0]).index_select(0, point) * xi).unsqueeze(-1) * e.index_select(0, point) \
+        + ((rb * k[:, 0]).index_select(0, point) * eta).unsqueeze(-1) * perp.index_select(0, point)
+    return point, uv.index_select(0, point) + off, w, count
