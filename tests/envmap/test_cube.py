@@ -9,7 +9,7 @@ from difftex.envmap import CubeMipmap, cube_mipmap, cube_to_direction, cubemap, 
 from tests.conftest import use_backend
 
 F64 = torch.float64
-MIP = ("trilinear", "nearest-mip", "anisotropic", "auto")
+MIP = ("trilinear", "nearest-mip", "anisotropic", "auto", "ewa")
 
 
 def texel_dirs(S: int, dtype=F64) -> torch.Tensor:
@@ -282,8 +282,8 @@ def test_zero_and_nonfinite_directions():
     cube, _ = grad_inputs()
     d = torch.tensor([[0.0, 0, 0], [float("nan"), 1, 0], [0.3, -0.2, 1.0], [float("inf"), 0, 0]],
                      dtype=F64).view(1, 1, 4, 3).requires_grad_()
-    for f in ("bilinear", "trilinear"):
-        kw = dict(dirs_dx=torch.full_like(d, 0.1), dirs_dy=torch.full_like(d, -0.05)) if f == "trilinear" else {}
+    for f in ("bilinear", "trilinear", "ewa"):
+        kw = dict(dirs_dx=torch.full_like(d, 0.1), dirs_dy=torch.full_like(d, -0.05)) if f != "bilinear" else {}
         out = cubemap(cube, d, filter=f, **kw)
         assert torch.equal(out[..., 0], torch.zeros_like(out[..., 0]))
         assert out[..., 1].isnan().all() and out[..., 3].isnan().all()
@@ -583,3 +583,20 @@ def test_ewa_gradient_reaches_every_level():
     scale = torch.logspace(-2, 1, 64, dtype=F64).view(1, 1, 64, 1)  # footprints from 0.04 to 40 texels
     cubemap(CubeMipmap(levels), d, filter="ewa", dirs_dx=dx * scale, dirs_dy=dy * scale * 0.5).sum().backward()
     assert all(lv.grad.abs().sum() > 0 for lv in levels), [lv.grad.abs().sum().item() for lv in levels]
+
+
+def test_ewa_nonfinite_and_degenerate_footprints():
+    # A NaN / infinite / zero derivative: finite values and gradients (one tap, or the coarsest level).
+    cube, d = grad_inputs()
+    n = d.shape[2]
+    dx = torch.full_like(d, 0.1).detach()
+    dx[0, 0, 0, 0], dx[0, 0, 1, 1], dx[0, 0, 2] = float("nan"), float("inf"), 0.0
+    dx.requires_grad_()
+    dy = torch.zeros_like(dx, requires_grad=True)
+    out = cubemap(cube, d, filter="ewa", dirs_dx=dx, dirs_dy=dy)
+    assert out.shape == (1, 2, 1, n) and out.isfinite().all()
+    gc, gd, gx, gy = torch.autograd.grad(out.sum(), (cube, d, dx, dy))
+    assert gc.isfinite().all() and gx.isfinite().all() and gy.isfinite().all()
+    # d's gradient where its derivative is NaN / infinite is NaN for every mip filter (direction_to_cube's
+    # derivative maths); finite input keeps a finite gradient.
+    assert gd[..., 2:, :].isfinite().all() and gd[..., 2, :].abs().sum() > 0  # a zero footprint: one tap
