@@ -126,7 +126,7 @@ from ..texture.filters.separable import separable_sample
 from ..texture.filters.trilinear import mip_blend, per_level, spread_taps
 from ..texture.options import (DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_bias, check_filter,
                                check_number)
-from ..texture.filters.ewa import ALPHA, MAX_MINOR, _covariance
+from ..texture.filters.ewa import ALPHA, MAX_MINOR, covariance
 from ..texture.lod import ellipse, footprint, level, log2_length
 from ..texture.pyramid.mipmap import Pyramid, level_count, mipmap
 from ..texture.sample import sample
@@ -664,7 +664,7 @@ def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tenso
 def _ewa_lod(dx: Tensor, dy: Tensor, bias: Union[float, Tensor], S: int, L: int, max_aniso: float) -> Tensor:
     """EWA's level on faces of S texels: ``log2`` of the minor axis grown to ``major / max_aniso`` (as ``sample``)."""
     fp = footprint(dx, dy, S, S)
-    return level(_covariance(fp, ellipse(fp), max_aniso)[2], bias, L)
+    return level(covariance(fp, ellipse(fp), max_aniso)[2], bias, L)
 
 
 def _ewa_taps(uv: Tensor, dx: Tensor, dy: Tensor, D: Tensor, S: int, L: int,
@@ -678,7 +678,7 @@ def _ewa_taps(uv: Tensor, dx: Tensor, dy: Tensor, D: Tensor, S: int, L: int,
     """
     fp = footprint(dx, dy, S, S)
     ell = ellipse(fp)
-    _, minor, _ = _covariance(fp, ell, max_aniso)
+    _, minor, _ = covariance(fp, ell, max_aniso)
     scale = torch.exp2(fp.log2_scale)
     texel = torch.exp2(D)  # a level-D texel, in level-0 texels
     # Half-axes in level-D texels; where the level is clamped (finest or coarsest) the minor axis may leave
