@@ -533,24 +533,23 @@ def _smooth_derivs(d, along, across, S):
     return dict(dirs_dx=t * (2 * along / S), dirs_dy=torch.linalg.cross(d, t) * (2 * across / S))
 
 
-@pytest.mark.parametrize("along, across, factor", [(2.5, 1.5, 1.5), (4.0, 1.0, 5.0)])
-def test_ewa_no_seams_along_great_circles(along, across, factor):
-    # EWA's taps cross edges as anisotropic's (reprojected) and its level is blended across edges, but the
-    # ellipse is the one projected on the point's own face, which changes at an edge (the two faces' texel
-    # grids are sheared there): measured on S = 8 noise, largest jump across a face change / inside a face
-    # 0.028 / 0.024 (footprint 2.5 x 1.5 texels) and 0.073 / 0.017 (4 x 1); anisotropic's 0.058 / 0.112 and
-    # 0.097 / 0.052, so EWA's edge jumps stay below anisotropic's.
+@pytest.mark.parametrize("along, across", [(2.5, 1.5), (4.0, 1.0)])
+def test_ewa_no_seams_along_great_circles(along, across):
+    # EWA's taps are laid out in the direction's tangent plane (no face in it) and its level is blended
+    # across edges; what jumps is the tap lattice's count, inside faces as much as at edges. Measured on
+    # S = 8 noise, largest jump across a face change / inside a face: 0.0041 / 0.020 (footprint 2.5 x 1.5
+    # texels) and 0.0057 / 0.019 (4 x 1); anisotropic's face-plane taps: 0.058 / 0.112 and 0.097 / 0.052.
     S = 8
     cube = torch.rand(1, 6, 3, S, S, dtype=F64, generator=torch.Generator().manual_seed(8))
     read = lambda f: seam_jumps(lambda d: cubemap(cube, d, filter=f, **_smooth_derivs(d, along, across, S)), S)
     cross, inside = read("ewa")
-    assert cross <= factor * inside and inside < 0.03, (cross, inside)
-    assert cross < read("anisotropic")[0], cross
+    assert cross <= inside / 2 and inside < 0.03, (cross, inside)
+    assert cross < read("anisotropic")[0] / 5, cross
 
 
 def test_ewa_matches_sample_inside_a_face():
     # Away from edges the cube's EWA (Gaussian-weighted bilinear taps) is close to difftex.sample's EWA on the
-    # face (Gaussian-weighted texels): mean |difference| measured 0.022 (footprints ~0.6 texel) and 0.012
+    # face (Gaussian-weighted texels): mean |difference| measured 0.021 (footprints ~0.6 texel) and 0.009
     # (~3 texels) on uniform noise, where anisotropic and sample's EWA differ by 0.014 and 0.029.
     S, n = 64, 300
     cube = torch.rand(1, 6, 3, S, S, dtype=F64, generator=torch.Generator().manual_seed(0))
@@ -558,7 +557,7 @@ def test_ewa_matches_sample_inside_a_face():
     uv = torch.rand(n, 2, generator=g, dtype=F64) * 0.4 + 0.3
     face = torch.full((n,), 4)
     V = lambda t: t.view(1, 1, n, -1)
-    for s, tol in ((0.01, 0.03), (0.05, 0.02)):
+    for s, tol in ((0.01, 0.03), (0.05, 0.015)):
         du = torch.randn(n, 2, generator=g, dtype=F64) * s
         dv = torch.randn(n, 2, generator=g, dtype=F64) * s * 0.3
         # d(direction) / d(uv) by central differences of the exact map (the direction's length does not matter).
