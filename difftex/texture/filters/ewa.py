@@ -50,7 +50,7 @@ _CHUNK = 1 << 20                  # (point, texel) pairs per chunk
 MAX_MINOR = 2.0                   # level-k texels, see the module docstring
 
 
-def _covariance(fp: Footprint, ell: Ellipse, max_aniso: float) -> tuple[Tensor, Tensor, Tensor]:
+def covariance(fp: Footprint, ell: Ellipse, max_aniso: float) -> tuple[Tensor, Tensor, Tensor]:
     """Scaled ellipse ``J J^T`` with the minor axis grown to ``major / max_aniso``, and its log2 minor axis.
 
     Returns ``(sigma [M, 3] as (xx, xy, yy) divided by scale^2, minor [M] scaled, log2_minor [M])``.
@@ -188,7 +188,7 @@ def ewa_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse
     # texture), which the integer origin in _ewa_level cannot undo; the
     # difference of uv and its floor is exact. (repeat: period 1, mirror: 2.)
     uv_safe = torch.stack([drop_periods(uv_safe[:, 0], wrap_u), drop_periods(uv_safe[:, 1], wrap_v)], -1)
-    sigma, minor, log2_minor = _covariance(fp, ell, max_aniso)
+    sigma, minor, log2_minor = covariance(fp, ell, max_aniso)
     D = level(log2_minor, lod_bias, len(levels))
     scale = torch.exp2(fp.log2_scale)
     if native.kernel(uv) is not None:
