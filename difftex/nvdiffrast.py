@@ -21,6 +21,10 @@ filter_mode            'nearest' | 'linear' | 'linear-mipmap-      "nearest" | "
                        nearest' | 'linear-mipmap-linear' | 'auto'  "trilinear"
 =====================  ==========================================  ===============================================
 
+The row order is converted without flipping images: the ops work on clip
+space mirrored in y, whose top-first rows are nvdiffrast's bottom-first rows
+(and whose per-row derivatives are nvdiffrast's d/dY).
+
 Where the documentation leaves a choice open, this module decides so:
 
 - ``pos`` and attributes may be float64 as well as float32 (for gradcheck);
@@ -178,17 +182,26 @@ def _check_rast(rast: object) -> Tensor:
 # rasterize
 
 
+_FLIP_Y = (1.0, -1.0, 1.0, 1.0)
+
+
+def _flip_y(pos: Tensor) -> Tensor:
+    """Clip space mirrored in y: difftex's row r of it is nvdiffrast's row r (bottom first), with no image flip."""
+    return pos * pos.new_tensor(_FLIP_Y)
+
+
 def _pack(frags: Fragments, offset: int, output_db: bool, grad_db: bool) -> tuple[Tensor, Tensor]:
-    """nvdiffrast's (rast, rast_db) from difftex fragments: rows flipped, ids + 1 (+ range offset)."""
-    found = frags.tri_id >= 0
-    ids = torch.where(found, frags.tri_id + (1 + offset), 0).to(frags.bary.dtype)
+    """nvdiffrast's (rast, rast_db) from difftex fragments of the y-mirrored positions: ids + 1 (+ range offset)."""
+    ids = frags.tri_id + 1  # background -1 -> 0
+    if offset:
+        ids = torch.where(ids > 0, ids + offset, 0)
     # z/w passes no gradient to pos (nvdiffrast's documentation).
-    rast = torch.stack([frags.bary[..., 0], frags.bary[..., 1], frags.depth.detach(), ids], -1).flip(1)
+    rast = torch.stack([frags.bary[..., 0], frags.bary[..., 1], frags.depth.detach(), ids.to(frags.bary.dtype)], -1)
     if not output_db:
         return rast, rast.new_zeros(rast.shape[:3] + (0,))
-    # Y runs up the image in nvdiffrast, rows run down in difftex.
+    # Rows of the mirrored image run up the real one: d/d(row) there is nvdiffrast's d/dY.
     dx, dy = frags.bary_dx, frags.bary_dy
-    db = torch.stack([dx[..., 0], -dy[..., 0], dx[..., 1], -dy[..., 1]], -1).flip(1)
+    db = torch.stack([dx[..., 0], dy[..., 0], dx[..., 1], dy[..., 1]], -1)
     return rast, (db if grad_db else db.detach())
 
 
@@ -210,6 +223,7 @@ def _raster_layers(glctx: object, pos: object, tri: object, resolution: object, 
         raise ValueError(f"pos: expected last dimension 4 (clip-space x, y, z, w), got {describe(pos)}")
     faces = _check_tri(tri, pos.shape[-2], pos.device)
     hw = _check_resolution(resolution)
+    pos = _flip_y(pos)
     if pos.dim() == 3:
         return [(raster(pos, faces, hw), 0)], ctx.output_db
     if ranges is None:
@@ -656,15 +670,13 @@ def antialias(color: Tensor, rast: Tensor, pos: Tensor, tri: Tensor, topology_ha
         pos = pos.unsqueeze(0).expand(rast.shape[0], -1, -1)
     if boost != 1.0:
         pos = _scale_grad(pos, boost)
-    # Back to difftex's rows (top first) and Fragments.
-    r = rast.flip(1)
-    tri_id = r[..., 3].detach().round().long() - 1
-    u, v = r[..., 0], r[..., 1]
+    # The Fragments of the y-mirrored clip space that rasterize used: rows as in rast.
+    tri_id = rast[..., 3].detach().round().long() - 1
+    u, v = rast[..., 0], rast[..., 1]
     bary = torch.stack([u, v, 1 - u - v], -1) * (tri_id >= 0)[..., None]
     zeros = torch.zeros_like(bary)
-    frags = Fragments(tri_id=tri_id, bary=bary, depth=r[..., 2], bary_dx=zeros, bary_dy=zeros)
-    out = _antialias(color.flip(1).permute(0, 3, 1, 2), frags, pos, faces)
-    return out.permute(0, 2, 3, 1).flip(1)
+    frags = Fragments(tri_id=tri_id, bary=bary, depth=rast[..., 2], bary_dx=zeros, bary_dy=zeros)
+    return _antialias(color.permute(0, 3, 1, 2), frags, _flip_y(pos), faces).permute(0, 2, 3, 1)
 
 
 class _ScaleGrad(torch.autograd.Function):

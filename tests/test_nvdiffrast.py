@@ -31,7 +31,7 @@ CTX = dr.RasterizeCudaContext()
 
 
 def test_rasterize_matches_difftex_with_nvdiffrast_conventions():
-    pos, tri, _ = _scene()
+    pos, tri, _ = _scene(dtype=torch.float64)
     rast, db = dr.rasterize(CTX, pos, tri, (40, 48))
     frags = difftex.rasterize(pos, tri.long(), (40, 48))
     r = rast.flip(1)  # nvdiffrast row 0 is the bottom of the image
@@ -39,12 +39,14 @@ def test_rasterize_matches_difftex_with_nvdiffrast_conventions():
     assert rast.shape == (2, 40, 48, 4) and db.shape == (2, 40, 48, 4)
     assert 0.2 < found.float().mean() < 0.9
     assert torch.equal(r[..., 3], torch.where(found, frags.tri_id + 1, 0).float())
-    assert torch.equal(r[..., 0], frags.bary[..., 0]) and torch.equal(r[..., 1], frags.bary[..., 1])
-    assert torch.equal(r[..., 2], frags.depth)
+    # rast comes from clip space mirrored in y, so the floats round differently (not the ids): float64.
+    close = dict(atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(r[..., :2], frags.bary[..., :2], **close)
+    torch.testing.assert_close(r[..., 2], frags.depth, **close)
     assert torch.equal(r[~found], torch.zeros_like(r[~found]))
     d = db.flip(1)
-    assert torch.equal(d[..., 0], frags.bary_dx[..., 0]) and torch.equal(d[..., 1], -frags.bary_dy[..., 0])
-    assert torch.equal(d[..., 2], frags.bary_dx[..., 1]) and torch.equal(d[..., 3], -frags.bary_dy[..., 1])
+    torch.testing.assert_close(d[..., 0::2], frags.bary_dx[..., :2], **close)
+    torch.testing.assert_close(d[..., 1::2], -frags.bary_dy[..., :2], **close)
 
 
 def test_rast_bottom_row_is_ndc_y_minus_one():
@@ -83,16 +85,16 @@ def test_output_db_false_and_grad_db():
 
 
 def test_interpolate_matches_difftex_values_and_derivatives():
-    pos, tri, uv = _scene()
-    attr = torch.cat([uv, torch.randn(uv.shape[0], 1, generator=torch.Generator().manual_seed(0))], -1)
+    pos, tri, uv = _scene(dtype=torch.float64)
+    attr = torch.cat([uv, torch.randn(uv.shape[0], 1, generator=torch.Generator().manual_seed(0), dtype=uv.dtype)], -1)
     rast, db = dr.rasterize(CTX, pos, tri, (36, 36))
     out, da = dr.interpolate(attr, rast, tri, rast_db=db, diff_attrs="all")
     frags = difftex.rasterize(pos, tri.long(), (36, 36))
     ref, rdx, rdy = difftex.interpolate(attr, tri.long(), frags, derivatives=True)
-    torch.testing.assert_close(out.flip(1), ref, atol=2e-6, rtol=0)
+    torch.testing.assert_close(out.flip(1), ref, atol=1e-12, rtol=0)
     got = da.flip(1).view(2, 36, 36, 3, 2)
-    torch.testing.assert_close(got[..., 0], rdx, atol=2e-6, rtol=1e-5)
-    torch.testing.assert_close(got[..., 1], -rdy, atol=2e-6, rtol=1e-5)
+    torch.testing.assert_close(got[..., 0], rdx, atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(got[..., 1], -rdy, atol=1e-12, rtol=1e-10)
     sel, sda = dr.interpolate(attr, rast, tri, rast_db=db, diff_attrs=[2])
     assert sda.shape == (2, 36, 36, 2) and torch.equal(sda, da[..., 4:6])
     _, none = dr.interpolate(attr, rast, tri)
@@ -365,7 +367,7 @@ def test_antialias_matches_difftex_and_passes_position_gradients():
 
 
 def test_depth_peeler_layers_match_depth_peel():
-    pos, tri, _ = _scene(B=2, subdivisions=1)
+    pos, tri, _ = _scene(B=2, subdivisions=1, dtype=torch.float64)
     ref = difftex.depth_peel(pos, tri.long(), (24, 24), 3)
     with dr.DepthPeeler(CTX, pos, tri, (24, 24)) as peeler:
         layers = [peeler.rasterize_next_layer() for _ in range(4)]
@@ -374,7 +376,7 @@ def test_depth_peeler_layers_match_depth_peel():
     for (rast, db), frags in zip(layers, ref):
         r = rast.flip(1)
         assert torch.equal(r[..., 3], torch.where(frags.tri_id >= 0, frags.tri_id + 1, 0).float())
-        assert torch.equal(r[..., :2], frags.bary[..., :2])
+        torch.testing.assert_close(r[..., :2], frags.bary[..., :2], atol=1e-12, rtol=1e-10)
     assert (layers[1][0][..., 3] > 0).sum() > 0.5 * (layers[0][0][..., 3] > 0).sum()  # a sphere: back faces
     assert layers[3][0].abs().sum() == 0  # a closed convex mesh has two layers
     with pytest.raises(RuntimeError, match="inside `with DepthPeeler"):
