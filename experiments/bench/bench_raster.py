@@ -285,18 +285,21 @@ def run_peers(kind: str, param: int, res: int, reps: int, pause: float) -> dict:
     return out
 
 
+def _run_scene(flags: list[str]) -> dict:
+    """One scene in a fresh process (its own peak memory, no other library's threads): its JSON result line."""
+    # As a module from the repository root, like this process (the package imports need it).
+    proc = subprocess.run([sys.executable, "-m", "experiments.bench.bench_raster", *flags],
+                          capture_output=True, text=True, env=dict(os.environ), cwd=ROOT)
+    if proc.returncode != 0:
+        print(proc.stderr, file=sys.stderr)
+        raise SystemExit(f"{' '.join(flags[-2:])} failed")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
 def peers_main(args) -> None:
     rows = []
     for kind, param, res in (PEER_SCENES_SMALL if args.small else PEER_SCENES):
-        proc = subprocess.run(
-            [sys.executable, "-m", "experiments.bench.bench_raster", "--reps", str(args.reps), "--pause",
-             str(args.pause), "--peer-one", f"{kind},{param},{res}"],
-            capture_output=True, text=True, env=dict(os.environ), cwd=ROOT,
-        )
-        if proc.returncode != 0:
-            print(proc.stderr, file=sys.stderr)
-            raise SystemExit(f"{kind} {param} {res} failed")
-        r = json.loads(proc.stdout.strip().splitlines()[-1])
+        r = _run_scene(["--reps", str(args.reps), "--pause", str(args.pause), "--peer-one", f"{kind},{param},{res}"])
         rows.append(r)
         if r["skipped"]:
             print(f"peers skipped: {r['skipped']}")
@@ -366,16 +369,7 @@ def main() -> None:
 
     rows = []
     for kind, param, res in SCENES:
-        out = subprocess.run(
-            # As a module from the repository root, like this process (the package imports need it).
-            [sys.executable, "-m", "experiments.bench.bench_raster", "--device", args.device, "--reps", str(args.reps),
-             "--one", f"{kind},{param},{res}"],
-            capture_output=True, text=True, env=dict(os.environ), cwd=ROOT,
-        )
-        if out.returncode != 0:
-            print(out.stderr, file=sys.stderr)
-            raise SystemExit(f"{kind} {param} {res} failed")
-        r = json.loads(out.stdout.strip().splitlines()[-1])
+        r = _run_scene(["--device", args.device, "--reps", str(args.reps), "--one", f"{kind},{param},{res}"])
         rows.append(r)
         name = "spot" if kind == "spot" else f"{kind} {param}"
         print(f"{name:>14} {r['tris']:>9,} tris {res:>5}^2  raster {r['raster_ms']:8.1f} ms  fwd {r['fwd_ms']:8.1f} ms  "
