@@ -48,7 +48,7 @@ or ``"ewa"`` with ``max_aniso``; ``boundary_mode="mirror"`` and a
 from __future__ import annotations
 
 import numbers
-from typing import Any, Optional, Sequence, Union
+from typing import Any, Callable, Iterator, Optional, Sequence, Union
 
 import torch
 from torch import Tensor
@@ -56,7 +56,7 @@ from torch import Tensor
 from ._checks import check_float, check_same, describe
 from .envmap.cube import CubeMipmap, cubemap
 from .geometry.antialias import antialias as _antialias
-from .geometry.raster import Fragments, peel, rasterize as _rasterize
+from .geometry.raster import Fragments, _fragments_of, _layers, _packed_of
 from .texture.options import MAX_ANISO, check_number
 from .texture.pyramid.mipmap import Mipmap, mipmap
 from .texture.sample import sample
@@ -190,19 +190,30 @@ def _flip_y(pos: Tensor) -> Tensor:
     return pos * pos.new_tensor(_FLIP_Y)
 
 
-def _pack(frags: Fragments, offset: int, output_db: bool, grad_db: bool) -> tuple[Tensor, Tensor]:
-    """nvdiffrast's (rast, rast_db) from difftex fragments of the y-mirrored positions: ids + 1 (+ range offset)."""
-    ids = frags.tri_id + 1  # background -1 -> 0
-    if offset:
-        ids = torch.where(ids > 0, ids + offset, 0)
-    # z/w passes no gradient to pos (nvdiffrast's documentation).
-    rast = torch.stack([frags.bary[..., 0], frags.bary[..., 1], frags.depth.detach(), ids.to(frags.bary.dtype)], -1)
-    if not output_db:
-        return rast, rast.new_zeros(rast.shape[:3] + (0,))
-    # Rows of the mirrored image run up the real one: d/d(row) there is nvdiffrast's d/dY.
-    dx, dy = frags.bary_dx, frags.bary_dy
-    db = torch.stack([dx[..., 0], dy[..., 0], dx[..., 1], dy[..., 1]], -1)
-    return rast, (db if grad_db else db.detach())
+def _packer(offset: int, output_db: bool, grad_db: bool) -> Callable[[Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]:
+    """The ``emit`` of geometry.raster's layers: nvdiffrast's (rast, rast_db) of one layer of the y-mirrored
+    positions, ids + 1 (+ range offset), from the native kernel in that layout or from difftex fragments."""
+
+    def emit(pos: Tensor, faces: Tensor, tri_id: Tensor) -> tuple[Tensor, Tensor]:
+        packed = _packed_of(pos, faces, tri_id, offset)
+        if packed is not None:
+            rast, db = packed
+        else:
+            frags = _fragments_of(pos, faces, tri_id)
+            ids = frags.tri_id + 1  # background -1 -> 0
+            if offset:
+                ids = torch.where(ids > 0, ids + offset, 0)
+            # z/w passes no gradient to pos (nvdiffrast's documentation).
+            rast = torch.stack([frags.bary[..., 0], frags.bary[..., 1], frags.depth.detach(),
+                                ids.to(frags.bary.dtype)], -1)
+            # Rows of the mirrored image run up the real one: d/d(row) there is nvdiffrast's d/dY.
+            dx, dy = frags.bary_dx, frags.bary_dy
+            db = torch.stack([dx[..., 0], dy[..., 0], dx[..., 1], dy[..., 1]], -1)
+        if not output_db:
+            return rast, rast.new_zeros(rast.shape[:3] + (0,))
+        return rast, (db if grad_db else db.detach())
+
+    return emit
 
 
 def _check_resolution(resolution: object) -> tuple[int, int]:
@@ -213,10 +224,9 @@ def _check_resolution(resolution: object) -> tuple[int, int]:
 
 
 def _raster_layers(glctx: object, pos: object, tri: object, resolution: object, ranges: object,
-                   lazy: bool = False) -> tuple[list[tuple[Any, int]], bool]:
-    """difftex fragments per minibatch piece (instanced: one piece; range mode: one per range), each with its
-    triangle-id offset; with ``lazy`` an iterator of depth layers per piece in place of the fragments."""
-    raster = peel if lazy else _rasterize
+                   grad_db: bool) -> list[Iterator[tuple[Tensor, Tensor]]]:
+    """Per minibatch piece (instanced: one piece; range mode: one per range) an iterator of its depth layers as
+    nvdiffrast's (rast, rast_db), nearest first."""
     ctx = _check_ctx(glctx)
     pos = _check_pos("pos", pos, (2, 3), "[num_vertices, 4] (range mode) or [minibatch_size, num_vertices, 4]")
     if pos.shape[-1] != 4:
@@ -225,7 +235,7 @@ def _raster_layers(glctx: object, pos: object, tri: object, resolution: object, 
     hw = _check_resolution(resolution)
     pos = _flip_y(pos)
     if pos.dim() == 3:
-        return [(raster(pos, faces, hw), 0)], ctx.output_db
+        return [_layers(pos, faces, hw, False, _packer(0, ctx.output_db, grad_db))]
     if ranges is None:
         raise ValueError("ranges: required in range mode (pos [num_vertices, 4]): expected an int32 CPU tensor "
                          "[minibatch_size, 2] of (start, count), got None")
@@ -238,15 +248,16 @@ def _raster_layers(glctx: object, pos: object, tri: object, resolution: object, 
         if start < 0 or count < 0 or start + count > faces.shape[0]:
             raise ValueError(f"ranges: range (start {start}, count {count}) lies outside tri's "
                              f"{faces.shape[0]} triangles")
-        pieces.append((raster(pos, faces[start:start + count], hw), start))
-    return pieces, ctx.output_db
+        pieces.append(_layers(pos, faces[start:start + count], hw, False, _packer(start, ctx.output_db, grad_db)))
+    return pieces
 
 
-def _join(pieces: list[tuple[Fragments, int]], output_db: bool, grad_db: bool) -> tuple[Tensor, Tensor]:
-    packed = [_pack(f, off, output_db, grad_db) for f, off in pieces]
-    if len(packed) == 1:
-        return packed[0]
-    return torch.cat([p[0] for p in packed]), torch.cat([p[1] for p in packed])
+def _next_layer(pieces: list[Iterator[tuple[Tensor, Tensor]]]) -> tuple[Tensor, Tensor]:
+    """The next layer of every piece, joined along the minibatch."""
+    layer = [next(p) for p in pieces]
+    if len(layer) == 1:
+        return layer[0]
+    return torch.cat([r for r, _ in layer]), torch.cat([d for _, d in layer])
 
 
 def rasterize(glctx: RasterizeCudaContext, pos: Tensor, tri: Tensor, resolution: Sequence[int],
@@ -275,8 +286,7 @@ def rasterize(glctx: RasterizeCudaContext, pos: Tensor, tri: Tensor, resolution:
     must be int32) or resolution type, ValueError naming the argument for a
     wrong shape, out-of-range index or range.
     """
-    pieces, output_db = _raster_layers(glctx, pos, tri, resolution, ranges)
-    return _join(pieces, output_db, grad_db)
+    return _next_layer(_raster_layers(glctx, pos, tri, resolution, ranges, grad_db))
 
 
 class DepthPeeler:
@@ -300,8 +310,7 @@ class DepthPeeler:
 
     def __enter__(self) -> "DepthPeeler":
         glctx, pos, tri, resolution, ranges = self._args
-        pieces, self._output_db = _raster_layers(glctx, pos, tri, resolution, ranges, lazy=True)
-        self._layers = pieces
+        self._layers = _raster_layers(glctx, pos, tri, resolution, ranges, self._grad_db)
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -314,7 +323,7 @@ class DepthPeeler:
         """
         if self._layers is None:
             raise RuntimeError("DepthPeeler.rasterize_next_layer: call it inside `with DepthPeeler(...) as peeler:`")
-        return _join([(next(layers), off) for layers, off in self._layers], self._output_db, self._grad_db)
+        return _next_layer(self._layers)
 
 
 # --------------------------------------------------------------------------

@@ -389,3 +389,43 @@ def test_depth_peeler_layers_match_depth_peel():
         second, _ = peeler.rasterize_next_layer()
     one = difftex.depth_peel(pos[:1], tri[half:].long(), (24, 24), 2)[1]
     assert torch.equal(second[1].flip(0)[..., 3], torch.where(one.tri_id[0] >= 0, one.tri_id[0] + 1 + half, 0).float())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_native_packed_pass_matches_the_torch_path(dtype):
+    # rasterize / DepthPeeler write nvdiffrast's layout straight from the native
+    # kernel on the CPU; the torch path packs difftex fragments. Both must give
+    # the same (rast, rast_db), range offsets, peeled layers and gradients.
+    from tests.conftest import use_backend
+
+    pos, tri, _ = _scene(B=3, dtype=dtype)
+    flat = pos[0]
+    ranges = torch.tensor([[0, 200], [150, 170]], dtype=torch.int32)
+    res = {}
+    for impl in ("native", "reference"):
+        p = pos.clone().requires_grad_(True)
+        q = flat.clone().requires_grad_(True)
+        with use_backend(impl):
+            outs = list(dr.rasterize(CTX, p, tri, (37, 29)))
+            outs += dr.rasterize(CTX, q, tri, (21, 26), ranges=ranges)
+            with dr.DepthPeeler(CTX, p, tri, (19, 23)) as peeler:
+                for _ in range(2):
+                    outs += peeler.rasterize_next_layer()
+        w = [torch.linspace(-1, 1, t.numel(), dtype=dtype).view(t.shape) for t in outs]
+        loss = sum((t * k).sum() for t, k in zip(outs, w))
+        gp, gq = torch.autograd.grad(loss, (p, q), create_graph=True)
+        # second order: a gradient of the gradient's norm
+        gg, = torch.autograd.grad(gp.square().sum(), p)
+        res[impl] = (outs, gp, gq, gg)
+    tol = dict(atol=2e-5, rtol=1e-5) if dtype == torch.float32 else dict(atol=1e-12, rtol=1e-10)
+    (a, *ga), (b, *gb) = res["native"], res["reference"]
+    for x, y in zip(a, b):
+        torch.testing.assert_close(x, y, **tol)
+    for x, y in zip(a[0::2], b[0::2]):  # rast: the ids exactly
+        assert torch.equal(x[..., 3], y[..., 3])
+    ids = a[2][..., 3]  # range mode: ids index the whole tri (range 1 starts at 150)
+    assert 0 < ids[0][ids[0] > 0].min() and ids[0].max() <= 200
+    assert 150 < ids[1][ids[1] > 0].min() and ids[1].max() <= 320
+    for x, y in zip(ga, gb):
+        torch.testing.assert_close(x, y, **tol)
+        assert x.abs().sum() > 0

@@ -50,7 +50,7 @@ from __future__ import annotations
 import itertools
 
 from dataclasses import dataclass, field
-from typing import Iterator, Optional, Sequence
+from typing import Callable, Iterator, Optional, Sequence, TypeVar
 
 import torch
 from torch import Tensor
@@ -58,6 +58,8 @@ from torch import Tensor
 from .._checks import check_index
 
 __all__ = ["Fragments", "depth_peel", "rasterize"]
+
+_T = TypeVar("_T")
 
 # Candidate (triangle, pixel) pairs evaluated per chunk; bounds the memory of
 # the visibility pass at a few hundred MB whatever the mesh or resolution.
@@ -731,35 +733,85 @@ def _bary_at(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, T
     return bary, depth, dx, dy
 
 
-class _NativeBary(torch.autograd.Function):
-    """:func:`_bary_at` with the forward in the native kernel; the backward differentiates the torch formula."""
+def _pixels(pos: Tensor, faces: Tensor, tri_id: Tensor, idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The covered pixels ``idx`` (flat over tri_id [B, H, W]): clip-space corners [N, 3, 4] of their triangles and
+    NDC centres x, y [N]."""
+    B, H, W = tri_id.shape
+    f = tri_id.reshape(-1).index_select(0, idx)
+    bi = torch.div(idx, H * W, rounding_mode="floor")
+    rc = idx - bi * (H * W)
+    r = torch.div(rc, W, rounding_mode="floor")
+    col = rc - r * W
+    xs = _pixel_centres(W, pos.dtype, pos.device, flip=False)
+    ys = _pixel_centres(H, pos.dtype, pos.device, flip=True)
+    # One flat gather (much faster than 2-index advanced indexing on CPU).
+    vid = (bi * pos.shape[1])[:, None] + faces.index_select(0, f)
+    v = pos.reshape(-1, 4).index_select(0, vid.reshape(-1)).view(-1, 3, 4)
+    return v, xs[col], ys[r]
+
+
+def _gather_rows(g: Optional[Tensor], idx: Tensor, width: int) -> Optional[Tensor]:
+    return None if g is None else g.reshape(-1, width).index_select(0, idx)
+
+
+class _NativeFragments(torch.autograd.Function):
+    """The differentiable pass in one native call (``raster_fragments``): dense outputs and the compact form.
+
+    Outputs (idx, bary_c, dx_c, dy_c, bary, depth, bary_dx, bary_dy), or with
+    ``packed`` nvdiffrast's (idx, rast, db) (rast's depth and id take no
+    gradient). The backward gathers the dense gradients at the covered pixels
+    and differentiates the torch formula :func:`_bary_at` there, from ``pos``
+    itself under create_graph (so double backward works).
+    """
 
     @staticmethod
-    def forward(ctx, v: Tensor, x: Tensor, y: Tensor, W: int, H: int, mod) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        ctx.save_for_backward(v, x, y)
-        ctx.W, ctx.H = W, H
-        return tuple(mod.raster_bary(v.detach(), x, y, H, W))
+    def forward(ctx, pos: Tensor, faces: Tensor, tri_id: Tensor, mod, packed: bool, offset: int):
+        out = mod.raster_fragments(pos.detach(), faces, tri_id, packed=packed, offset=offset)
+        ctx.save_for_backward(pos, faces, tri_id, out[0])
+        ctx.packed, ctx.mod = packed, mod
+        ctx.mark_non_differentiable(out[0])
+        ctx.set_materialize_grads(False)
+        return tuple(out)
 
     @staticmethod
-    def backward(ctx, *grads: Tensor):
-        v, x, y = ctx.saved_tensors
-        # Recomputed from v itself: under create_graph the gradient stays
-        # differentiable (double backward through the torch formula).
+    def backward(ctx, _gidx: None, *grads: Optional[Tensor]):
+        pos, faces, tri_id, idx = ctx.saved_tensors
+        none = (None,) * 6
+        if all(g is None for g in grads):
+            return none
+        if not (torch.is_grad_enabled() and pos.requires_grad):
+            # First order: the kernel's hand-written adjoint of the same
+            # formula, reading the gradients where they are.
+            empty = pos.new_empty(0)
+            return (ctx.mod.raster_fragments_backward(pos.detach(), faces, tri_id, idx,
+                                                      [empty if g is None else g for g in grads], ctx.packed),
+                    *none[1:])
+        # Under create_graph: the torch formula differentiated from pos itself.
+        B, H, W = tri_id.shape
+        if ctx.packed:
+            g_rast, g_db = (_gather_rows(g, idx, 4) for g in grads)
+            zero = idx.new_zeros(idx.shape, dtype=pos.dtype)
+            gb = None if g_rast is None else torch.stack([g_rast[:, 0], g_rast[:, 1], zero], 1)
+            gdx = None if g_db is None else torch.stack([g_db[:, 0], g_db[:, 2], zero], 1)
+            gdy = None if g_db is None else torch.stack([g_db[:, 1], g_db[:, 3], zero], 1)
+            gz = None
+        else:
+            gbc, gdxc, gdyc, gb_d, gz_d, gdx_d, gdy_d = grads
+
+            def both(compact: Optional[Tensor], dense: Optional[Tensor]) -> Optional[Tensor]:
+                dense = _gather_rows(dense, idx, 3)
+                return dense if compact is None else (compact if dense is None else compact + dense)
+
+            gb, gdx, gdy = both(gbc, gb_d), both(gdxc, gdx_d), both(gdyc, gdy_d)
+            gz = _gather_rows(gz_d, idx, 1)
+            gz = None if gz is None else gz[:, 0]
+        pairs = [(k, g) for k, g in enumerate((gb, gz, gdx, gdy)) if g is not None]
+        if not pairs:
+            return none
         with torch.enable_grad():
-            vv = v if torch.is_grad_enabled() and v.requires_grad else v.detach().requires_grad_(True)
-            outs = _bary_at(vv, x, y, ctx.W, ctx.H)
-            (g,) = torch.autograd.grad(outs, (vv,), grads, create_graph=torch.is_grad_enabled() and v.requires_grad)
-        return g, None, None, None, None, None
-
-
-def _bary(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """:func:`_bary_at`, its forward in the native kernel where ``difftex.backend`` sends CPU tensors."""
-    from ..texture import native
-
-    mod = native.kernel(v)
-    if mod is None:
-        return _bary_at(v, x, y, W, H)
-    return _NativeBary.apply(v, x, y, W, H, mod)
+            outs = _bary_at(*_pixels(pos, faces, tri_id, idx), W, H)
+            (g,) = torch.autograd.grad([outs[k] for k, _ in pairs], (pos,), [g for _, g in pairs], create_graph=True)
+        return (g, *none[1:])
 
 
 def rasterize(
@@ -808,13 +860,7 @@ def rasterize(
     ValueError naming ``resolution`` and the batch where the per-pixel
     buffers would exceed :data:`MAX_BYTES` (16 GiB by default).
     """
-    pos = _check_pos(pos)
-    faces = check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
-    H, W = _check_resolution(resolution)
-    _check_memory(pos.shape[0], H, W, pos.dtype)
-    with torch.no_grad():
-        tri_id, _ = _visibility(pos, faces, H, W, cull_backfaces)
-    return _fragments_of(pos, faces, tri_id)
+    return next(_layers(pos, faces, resolution, cull_backfaces, _fragments_of))
 
 
 def depth_peel(
@@ -862,6 +908,13 @@ def peel(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cull_backface
     surface every layer is background. Arguments, gradients and errors as
     :func:`depth_peel` (the errors are raised at the first ``next()``).
     """
+    return _layers(pos, faces, resolution, cull_backfaces, _fragments_of)
+
+
+def _layers(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_backfaces: bool,
+            emit: Callable[[Tensor, Tensor, Tensor], _T]) -> Iterator[_T]:
+    """Depth layers nearest first, without end: ``emit(pos, faces, tri_id)`` of the checked arguments and each
+    layer's visible triangle ids [B, H, W]."""
     pos = _check_pos(pos)
     faces = check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
     H, W = _check_resolution(resolution)
@@ -870,44 +923,49 @@ def peel(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cull_backface
     while True:
         with torch.no_grad():
             tri_id, zbuf = _visibility(pos, faces, H, W, cull_backfaces, floor)
-            # Background pixels keep floor (+inf, max id): nothing lies behind it.
-            floor = (zbuf, torch.where(tri_id.reshape(-1) >= 0, tri_id.reshape(-1), _ID_EMPTY))
-        yield _fragments_of(pos, faces, tri_id)
+        yield emit(pos, faces, tri_id)
+        # Background pixels keep floor (+inf, max id): nothing lies behind it.
+        floor = (zbuf, torch.where(tri_id.reshape(-1) >= 0, tri_id.reshape(-1), _ID_EMPTY))
 
 
 def _fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
     """The differentiable pass: barycentrics, depth and derivatives of the triangles ``tri_id`` [B, H, W] names."""
-    B, H, W = tri_id.shape
-    flat = tri_id.reshape(-1)
-    idx = torch.nonzero(flat >= 0).squeeze(1)
-    f = flat[idx]
-    bi = torch.div(idx, H * W, rounding_mode="floor")
-    rc = idx - bi * (H * W)
-    r = torch.div(rc, W, rounding_mode="floor")
-    col = rc - r * W
-    xs = _pixel_centres(W, pos.dtype, pos.device, flip=False)
-    ys = _pixel_centres(H, pos.dtype, pos.device, flip=True)
-    # One flat gather (much faster than 2-index advanced indexing on CPU).
-    vid = (bi * pos.shape[1])[:, None] + faces[f]
-    v = pos.reshape(-1, 4).index_select(0, vid.reshape(-1)).view(-1, 3, 4)  # [N, 3, 4]
-    bary_c, depth_c, dx_c, dy_c = _bary(v, xs[col], ys[r], W, H)
+    from ..texture import native
 
-    # Separate dense outputs (not views of one packed tensor): the backward
-    # of a view would allocate a zero gradient of the whole packed buffer.
-    def dense(vals: Tensor) -> Tensor:
-        k = vals.shape[1:]
-        out = vals.new_zeros((B * H * W, *k))
-        out.index_put_((idx,), vals)  # in place on fresh zeros: no copy
-        return out.view(B, H, W, *k)
+    mod = native.kernel(pos)
+    if mod is not None:
+        idx, bary_c, dx_c, dy_c, bary, depth, bary_dx, bary_dy = _NativeFragments.apply(
+            pos, faces, tri_id, mod, False, 0)
+    else:
+        B, H, W = tri_id.shape
+        idx = torch.nonzero(tri_id.reshape(-1) >= 0).squeeze(1)
+        bary_c, depth_c, dx_c, dy_c = _bary_at(*_pixels(pos, faces, tri_id, idx), W, H)
 
-    frags = Fragments(
-        tri_id=tri_id,
-        bary=dense(bary_c),
-        depth=dense(depth_c),
-        bary_dx=dense(dx_c),
-        bary_dy=dense(dy_c),
-    )
+        # Separate dense outputs (not views of one packed tensor): the
+        # backward of a view would allocate a zero gradient of the whole
+        # packed buffer.
+        def dense(vals: Tensor) -> Tensor:
+            k = vals.shape[1:]
+            out = vals.new_zeros((B * H * W, *k))
+            out.index_put_((idx,), vals)  # in place on fresh zeros: no copy
+            return out.view(B, H, W, *k)
+
+        bary, depth, bary_dx, bary_dy = dense(bary_c), dense(depth_c), dense(dx_c), dense(dy_c)
+    frags = Fragments(tri_id=tri_id, bary=bary, depth=depth, bary_dx=bary_dx, bary_dy=bary_dy)
     # Covered pixels in compact form for interpolate(): gathering from the
     # dense tensors would cost a dense zero gradient per tensor in backward.
     object.__setattr__(frags, "_compact", (idx, bary_c, dx_c, dy_c))
     return frags
+
+
+def _packed_of(pos: Tensor, faces: Tensor, tri_id: Tensor, offset: int) -> Optional[tuple[Tensor, Tensor]]:
+    """nvdiffrast's (rast, db) of ``tri_id`` straight from the native kernel (difftex.nvdiffrast's fast path):
+    rast = (b0, b1, depth, id + 1 + offset), db = (db0/dx, db0/dy, db1/dx, db1/dy) per column / row, zeros on
+    background; None where the kernel does not serve ``pos``."""
+    from ..texture import native
+
+    mod = native.kernel(pos)
+    if mod is None:
+        return None
+    _, rast, db = _NativeFragments.apply(pos, faces, tri_id, mod, True, offset)
+    return rast, db

@@ -48,7 +48,7 @@ def taps(filter: str, dx: Tensor, dy: Tensor, bias: Union[float, Tensor], height
     kernel = None if grad else native.kernel(dx)
     if kernel is not None:
         per_point = isinstance(bias, Tensor) and bias.dim() == 1
-        D, axis, count = kernel.front(dx.contiguous(), dy.contiguous(),
+        D, axis, count = kernel.front(dx, dy,
                                       bias.detach().contiguous() if per_point else dx.new_empty(0),
                                       bias0=0.0 if per_point else float(bias), height=height, width=width,
                                       levels=levels, kind=kind, max_aniso=max_aniso, tolerance=tolerance)

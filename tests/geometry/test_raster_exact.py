@@ -276,27 +276,36 @@ def test_depth_peel_bad_layers():
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_native_barycentrics_and_gradients_match_torch_path(dtype):
-    # The native forward of the barycentric pass against the torch formula,
-    # and the gradients (the torch formula's, differentiated) to pos.
+    # The native forward of the differentiable pass against the torch formula,
+    # and the kernel's hand-written adjoint against the torch formula
+    # differentiated by autograd (first order; double backward is the torch
+    # formula's in both). In float32 the two sum in different orders, so each
+    # float32 gradient is held against the float64 one.
     pos, F = _mixed_scene()
-    pos = pos.to(dtype)
     H, W = 33, 47
     res = {}
-    for impl in IMPLS:
-        p = pos.clone().requires_grad_(True)
+    for impl, dt in (("native", dtype), ("reference", dtype), ("reference", torch.float64)):
+        p = pos.to(dt).clone().requires_grad_(True)
         with use_backend(impl):
             fr = rasterize(p, F, (H, W))
             val = difftex.interpolate(p[:, :2].square(), F, fr, derivatives=True)
-        loss = sum((t * torch.linspace(0.5, 1.5, t.numel(), dtype=dtype).view(t.shape)).sum()
+        loss = sum((t * torch.linspace(0.5, 1.5, t.numel(), dtype=dt).view(t.shape)).sum()
                    for t in (fr.bary, fr.depth, fr.bary_dx, fr.bary_dy, *val))
         loss.backward()
-        res[impl] = (fr, p.grad)
-    (a, ga), (b, gb) = res["native"], res["reference"]
+        res[impl, dt] = (fr, p.grad)
+    (a, ga), (b, gb) = res["native", dtype], res["reference", dtype]
     assert torch.equal(a.tri_id, b.tri_id)
     tol = dict(atol=1e-5, rtol=1e-5) if dtype == torch.float32 else dict(atol=1e-12, rtol=1e-12)
     for name in ("bary", "depth", "bary_dx", "bary_dy"):
         torch.testing.assert_close(getattr(a, name), getattr(b, name), **tol)
-    torch.testing.assert_close(ga, gb, **tol)
+    if dtype == torch.float64:
+        torch.testing.assert_close(ga, gb, **tol)
+    else:
+        exact = res["reference", torch.float64][1]
+        err_native = (ga.double() - exact).abs().max()
+        err_torch = (gb.double() - exact).abs().max()
+        assert err_native <= 2 * err_torch + 1e-6 * exact.abs().max(), (err_native, err_torch)
+        torch.testing.assert_close(ga.double(), exact, atol=1e-4 * exact.abs().max(), rtol=1e-3)
     assert ga.abs().sum() > 0
 
 

@@ -163,7 +163,9 @@ def _down_axis(x: Tensor, dim: int) -> Tensor:
 
 def build_levels(texture: Tensor, n: int) -> list[Tensor]:
     """Levels 0 .. n-1 of ``texture``: runs of even x even steps as one ``_EvenChain``, other steps axis by axis."""
-    levels = [texture]
+    # A strided base (an NHWC texture's NCHW view) is copied once here; the
+    # box steps and the kernels' reads would each copy it otherwise.
+    levels = [texture.contiguous()]
     while len(levels) < n:
         x = levels[-1]
         H, W = x.shape[-2:]

@@ -97,9 +97,11 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, 
                                                               double bias0, int64_t H, int64_t W, int64_t levels,
                                                               int64_t kind, double max_aniso, double tolerance) {
   const int64_t M = dx.size(0);
-  TORCH_CHECK(dx.dim() == 2 && dx.size(1) == 2 && dx.is_contiguous() && dx.device().is_cpu() &&
-                  dy.sizes() == dx.sizes() && dy.is_contiguous() && dy.scalar_type() == dx.scalar_type(),
-              "mip_read.front: uv_dx, uv_dy must be contiguous CPU [M, 2] of one dtype");
+  // Any strides: nvdiffrast's uv_da interleaves uv_dx and uv_dy, and a copy
+  // of each would cost more than this pass.
+  TORCH_CHECK(dx.dim() == 2 && dx.size(1) == 2 && dx.device().is_cpu() && dy.sizes() == dx.sizes() &&
+                  dy.scalar_type() == dx.scalar_type(),
+              "mip_read.front: uv_dx, uv_dy must be CPU [M, 2] of one dtype");
   TORCH_CHECK(bias.numel() == 0 || (bias.dim() == 1 && bias.size(0) == M && bias.is_contiguous() &&
                                     bias.scalar_type() == dx.scalar_type()),
               "mip_read.front: bias must be contiguous [M] of uv_dx's dtype, or empty");
@@ -113,6 +115,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, 
   AT_DISPATCH_FLOATING_TYPES(dx.scalar_type(), "mip_read_front", [&] {
     const scalar_t* px = dx.data_ptr<scalar_t>();
     const scalar_t* py = dy.data_ptr<scalar_t>();
+    const int64_t xr = dx.stride(0), xc = dx.stride(1), yr = dy.stride(0), yc = dy.stride(1);
     const scalar_t* pb = bias.numel() ? bias.data_ptr<scalar_t>() : nullptr;
     scalar_t* pD = D.data_ptr<scalar_t>();
     scalar_t* pa = axis.data_ptr<scalar_t>();
@@ -121,13 +124,13 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, 
     at::parallel_for(0, M, 2048, [&](int64_t lo, int64_t hi) {
       for (int64_t e = lo; e < hi; ++e) {
         const double b = pb ? static_cast<double>(pb[e]) : bias0;
+        const double dx0 = px[xr * e], dx1 = px[xr * e + xc], dy0 = py[yr * e], dy1 = py[yr * e + yc];
         if (kind == 0) {
-          pD[e] = static_cast<scalar_t>(trilinear_level(px[2 * e], px[2 * e + 1], py[2 * e], py[2 * e + 1], b, h, w,
-                                                        levels));
+          pD[e] = static_cast<scalar_t>(trilinear_level(dx0, dx1, dy0, dy1, b, h, w, levels));
           continue;
         }
-        Taps t = front_one(px[2 * e], px[2 * e + 1], py[2 * e], py[2 * e + 1], b, pb ? -1.0 : exp2_bias0, h, w,
-                           1.0 / h, 1.0 / w, levels, is_auto, cap, shrink);
+        Taps t = front_one(dx0, dx1, dy0, dy1, b, pb ? -1.0 : exp2_bias0, h, w, 1.0 / h, 1.0 / w, levels, is_auto,
+                           cap, shrink);
         pD[e] = static_cast<scalar_t>(t.D);
         pa[2 * e] = static_cast<scalar_t>(t.ax);
         pa[2 * e + 1] = static_cast<scalar_t>(t.ay);

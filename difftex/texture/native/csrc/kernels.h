@@ -69,10 +69,20 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
 std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor faces, int64_t H, int64_t W,
                                                 bool cull, int64_t bits, torch::Tensor floor_z,
                                                 torch::Tensor floor_id, bool count);
-// raster.cpp: rasterize's barycentric pass, forward (geometry/raster.py _bary_at).
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> raster_bary(torch::Tensor v, torch::Tensor x,
-                                                                                     torch::Tensor y, int64_t H,
-                                                                                     int64_t W);
+// raster.cpp: rasterize's differentiable pass, forward (geometry/raster.py
+// _fragments_of; the torch _bary_at gives the gradients). pos [B, V, 4]
+// float, faces [F, 3] int64, tri_id [B, H, W] int64 (-1 background) ->
+// (idx [N] flat covered pixels, bary, bary_dx, bary_dy [N, 3] there, dense
+// bary [B, H, W, 3], depth [B, H, W], bary_dx, bary_dy [B, H, W, 3]); with
+// packed, nvdiffrast's layout instead: (idx, rast [B, H, W, 4] = (b0, b1,
+// depth, id + 1 + offset), db [B, H, W, 4] = (db0/dx, db0/dy, db1/dx,
+// db1/dy)); zeros on background.
+std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor faces, torch::Tensor tri_id,
+                                            bool packed, int64_t offset);
+// Its first-order backward: the output gradients as autograd gives them
+// (compact and dense, or packed; undefined: none) -> the gradient of pos.
+torch::Tensor raster_fragments_backward(torch::Tensor pos, torch::Tensor faces, torch::Tensor tri_id,
+                                        torch::Tensor idx, std::vector<torch::Tensor> grads, bool packed);
 
 // single.cpp: the single-level reads (kind 0 nearest, 1 bilinear, 2
 // bicubic; wrap and border from opts) of texture [Bt, C, H, W] at uv

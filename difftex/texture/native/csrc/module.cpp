@@ -78,8 +78,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("raster", &raster, "rasterize's visibility pass (ids and float64 depth)", py::arg("pos"), py::arg("faces"),
         py::arg("H"), py::arg("W"), py::arg("cull"), py::arg("bits"), py::arg("floor_z"), py::arg("floor_id"),
         py::kw_only(), py::arg("count") = false);
-  m.def("raster_bary", &raster_bary, "rasterize's barycentric pass, forward", py::arg("v"), py::arg("x"),
-        py::arg("y"), py::arg("H"), py::arg("W"));
+  m.def("raster_fragments", &raster_fragments, "rasterize's differentiable pass, forward", py::arg("pos"),
+        py::arg("faces"), py::arg("tri_id"), py::kw_only(), py::arg("packed") = false, py::arg("offset") = 0);
+  m.def("raster_fragments_backward", &raster_fragments_backward, "rasterize's differentiable pass, backward",
+        py::arg("pos"), py::arg("faces"), py::arg("tri_id"), py::arg("idx"), py::arg("grads"), py::arg("packed"));
 
   // The constants mirrored from Python (common.h names the Python side of each).
   m.attr("INDEX_CAP") = kTwo52;

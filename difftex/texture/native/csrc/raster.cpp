@@ -381,74 +381,324 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
   return {ids, depth};
 }
 
-// rasterize's barycentric pass, forward only (geometry/raster.py _bary_at,
-// the same formulas; its torch ops give the gradients): v [N, 3, 4] the
-// clip-space corners of each covered pixel's triangle, x, y [N] its NDC
-// centre -> bary [N, 3], depth [N], d(bary)/d(column) [N, 3],
-// d(bary)/d(row) [N, 3], zeros where degenerate.
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> raster_bary(torch::Tensor v, torch::Tensor x,
-                                                                                     torch::Tensor y, int64_t H,
-                                                                                     int64_t W) {
-  TORCH_CHECK(v.device().is_cpu() && v.dim() == 3 && v.size(1) == 3 && v.size(2) == 4 &&
-                  x.scalar_type() == v.scalar_type() && y.scalar_type() == v.scalar_type(),
-              "raster_bary: expected v [N, 3, 4] and x, y [N] of one float dtype on the CPU");
-  v = v.contiguous();
-  x = x.contiguous();
-  y = y.contiguous();
-  const int64_t N = v.size(0);
-  auto bary = torch::empty({N, 3}, v.options()), depth = torch::empty({N}, v.options());
-  auto dx = torch::empty({N, 3}, v.options()), dy = torch::empty({N, 3}, v.options());
-  AT_DISPATCH_FLOATING_TYPES(v.scalar_type(), "raster_bary", [&] {
+namespace {
+
+// Perspective-correct barycentrics of one pixel (geometry/raster.py _bary_at,
+// the same formulas in the same order): c the 12 clip-space corner
+// coordinates, (x, y) the NDC centre, (sx, sy) = (2 / W, -2 / H) -> b, d
+// (d(bary)/d(column)), e (d(bary)/d(row)) [3] each, and the NDC depth; zeros
+// where the triangle is degenerate at the pixel.
+template <typename T>
+inline T bary_one(const T* c, T x, T y, T sx, T sy, T* ob, T* odx, T* ody) {
+  T m = 0;
+  for (int i = 0; i < 12; ++i) m = std::max(m, std::abs(c[i]));
+  int ex = 0;
+  std::frexp(m, &ex);
+  const T sc = std::ldexp(T(1), -ex);  // per-triangle power of two: no overflow, same ratios
+  T X[3], Y[3], Z[3], Wc[3];
+  for (int i = 0; i < 3; ++i) {
+    X[i] = c[4 * i] * sc;
+    Y[i] = c[4 * i + 1] * sc;
+    Z[i] = c[4 * i + 2] * sc;
+    Wc[i] = c[4 * i + 3] * sc;
+  }
+  T a[3], b[3], e[3];
+  for (int i = 0; i < 3; ++i) {
+    const int j = (i + 1) % 3, k = (i + 2) % 3;
+    a[i] = Y[j] * Wc[k] - Wc[j] * Y[k];
+    b[i] = Wc[j] * X[k] - X[j] * Wc[k];
+    const T cc = X[j] * Y[k] - Y[j] * X[k];
+    e[i] = a[i] * x + b[i] * y + cc;
+  }
+  const T s = e[0] + e[1] + e[2];
+  if (s == 0) {
+    for (int i = 0; i < 3; ++i) ob[i] = odx[i] = ody[i] = 0;
+    return 0;
+  }
+  const T sa = a[0] + a[1] + a[2], sb = b[0] + b[1] + b[2];
+  for (int i = 0; i < 3; ++i) {
+    ob[i] = e[i] / s;
+    odx[i] = (a[i] - ob[i] * sa) / s * sx;
+    ody[i] = (b[i] - ob[i] * sb) / s * sy;
+  }
+  const T zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
+  const T wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
+  return wn != 0 ? zn / wn : T(0);
+}
+
+// The adjoint of bary_one (reverse mode by hand, the same expressions):
+// gb, gdx, gdy [3] and gz the output gradients (null: none) -> g [12] the
+// gradient w.r.t. the corners c. The outputs are invariant to the
+// per-triangle power of two, so the scaled coordinates' gradient times that
+// factor is the gradient w.r.t. c.
+template <typename T>
+inline void bary_one_adjoint(const T* c, T x, T y, T sx, T sy, const T* gB, const T* gDx, const T* gDy,
+                             const T* gZ, T* g) {
+  T m = 0;
+  for (int i = 0; i < 12; ++i) m = std::max(m, std::abs(c[i]));
+  int ex = 0;
+  std::frexp(m, &ex);
+  const T sc = std::ldexp(T(1), -ex);
+  T X[3], Y[3], Z[3], Wc[3];
+  for (int i = 0; i < 3; ++i) {
+    X[i] = c[4 * i] * sc;
+    Y[i] = c[4 * i + 1] * sc;
+    Z[i] = c[4 * i + 2] * sc;
+    Wc[i] = c[4 * i + 3] * sc;
+  }
+  T a[3], b[3], e[3];
+  for (int i = 0; i < 3; ++i) {
+    const int j = (i + 1) % 3, k = (i + 2) % 3;
+    a[i] = Y[j] * Wc[k] - Wc[j] * Y[k];
+    b[i] = Wc[j] * X[k] - X[j] * Wc[k];
+    const T cc = X[j] * Y[k] - Y[j] * X[k];
+    e[i] = a[i] * x + b[i] * y + cc;
+  }
+  for (int i = 0; i < 12; ++i) g[i] = 0;
+  const T s = e[0] + e[1] + e[2];
+  if (s == 0) return;  // the outputs are the constant 0 there
+  const T sa = a[0] + a[1] + a[2], sb = b[0] + b[1] + b[2];
+  const T is = T(1) / s;
+  T bary[3], ga[3], gb[3], ge[3];
+  T gs = 0, gsa = 0, gsb = 0;
+  for (int i = 0; i < 3; ++i) {
+    bary[i] = e[i] / s;
+    T gbary = gB ? gB[i] : T(0);
+    ga[i] = gb[i] = 0;
+    if (gDx) {
+      const T dx = (a[i] - bary[i] * sa) / s * sx;
+      ga[i] += sx * gDx[i] * is;
+      gsa -= sx * gDx[i] * bary[i] * is;
+      gbary -= sx * sa * gDx[i] * is;
+      gs -= gDx[i] * dx * is;
+    }
+    if (gDy) {
+      const T dy = (b[i] - bary[i] * sb) / s * sy;
+      gb[i] += sy * gDy[i] * is;
+      gsb -= sy * gDy[i] * bary[i] * is;
+      gbary -= sy * sb * gDy[i] * is;
+      gs -= gDy[i] * dy * is;
+    }
+    ge[i] = gbary * is;
+    gs -= gbary * bary[i] * is;
+  }
+  T gZc[3] = {0, 0, 0}, gWc[3] = {0, 0, 0};
+  if (gZ) {
+    const T zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
+    const T wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
+    if (wn != 0) {
+      const T gzn = *gZ / wn, gwn = -*gZ * (zn / wn) / wn;
+      for (int i = 0; i < 3; ++i) {
+        ge[i] += gzn * Z[i] + gwn * Wc[i];
+        gZc[i] = gzn * e[i];
+        gWc[i] = gwn * e[i];
+      }
+    }
+  }
+  T gX[3], gY[3], gW[3];
+  for (int i = 0; i < 3; ++i) {
+    gX[i] = gY[i] = 0;
+    gW[i] = gWc[i];
+  }
+  for (int i = 0; i < 3; ++i) {
+    const int j = (i + 1) % 3, k = (i + 2) % 3;
+    const T gei = ge[i] + gs;
+    const T gai = ga[i] + gsa + gei * x, gbi = gb[i] + gsb + gei * y, gci = gei;
+    gY[j] += gai * Wc[k], gW[k] += gai * Y[j], gW[j] -= gai * Y[k], gY[k] -= gai * Wc[j];
+    gW[j] += gbi * X[k], gX[k] += gbi * Wc[j], gX[j] -= gbi * Wc[k], gW[k] -= gbi * X[j];
+    gX[j] += gci * Y[k], gY[k] += gci * X[j], gY[j] -= gci * X[k], gX[k] -= gci * Y[j];
+  }
+  for (int i = 0; i < 3; ++i) {
+    g[4 * i] = gX[i] * sc;
+    g[4 * i + 1] = gY[i] * sc;
+    g[4 * i + 2] = gZc[i] * sc;
+    g[4 * i + 3] = gW[i] * sc;
+  }
+}
+
+}  // namespace
+
+// rasterize's differentiable pass, forward only (geometry/raster.py
+// _fragments_of; its torch formula gives the gradients). One threaded pass
+// over the pixels of tri_id [B, H, W] (-1 background) writes the dense
+// outputs, zeros on background, and the covered pixels in compact form
+// (flat index order), so no nonzero / gather / scatter on the Python side.
+std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor faces, torch::Tensor tri_id,
+                                            bool packed, int64_t offset) {
+  TORCH_CHECK(pos.device().is_cpu() && pos.dim() == 3 && pos.size(2) == 4 && faces.dim() == 2 &&
+                  faces.size(1) == 3 && faces.scalar_type() == torch::kInt64 && tri_id.dim() == 3 &&
+                  tri_id.scalar_type() == torch::kInt64 && tri_id.size(0) == pos.size(0),
+              "raster_fragments: expected pos [B, V, 4] float, faces [F, 3] int64, tri_id [B, H, W] int64 on the CPU");
+  pos = pos.contiguous();
+  faces = faces.contiguous();
+  tri_id = tri_id.contiguous();
+  const int64_t B = tri_id.size(0), H = tri_id.size(1), W = tri_id.size(2), V = pos.size(1);
+  const int64_t rows = B * H;
+  const int64_t* pid = tri_id.data_ptr<int64_t>();
+  const int64_t* pf = faces.data_ptr<int64_t>();
+  // Covered pixels per image row, then their prefix: each row's first slot
+  // in the compact outputs, so the rows can be filled in parallel.
+  std::vector<int64_t> first(rows + 1, 0);
+  at::parallel_for(0, rows, 64, [&](int64_t lo, int64_t hi) {
+    for (int64_t r = lo; r < hi; ++r) {
+      int64_t n = 0;
+      for (int64_t c = 0; c < W; ++c) n += pid[r * W + c] >= 0;
+      first[r + 1] = n;
+    }
+  });
+  for (int64_t r = 0; r < rows; ++r) first[r + 1] += first[r];
+  const int64_t N = first[rows];
+  auto opt = pos.options();
+  auto idx = torch::empty({N}, tri_id.options());
+  std::vector<torch::Tensor> out{idx};
+  if (packed) {
+    out.push_back(torch::empty({B, H, W, 4}, opt));  // rast: (b0, b1, depth, id + 1 + offset), 0 on background
+    out.push_back(torch::empty({B, H, W, 4}, opt));  // db: (db0/dX, db0/dY, db1/dX, db1/dY)
+  } else {
+    for (auto k : {3, 3, 3}) out.push_back(torch::empty({N, k}, opt));  // compact bary, d/dcolumn, d/drow
+    out.push_back(torch::empty({B, H, W, 3}, opt));
+    out.push_back(torch::empty({B, H, W}, opt));
+    out.push_back(torch::empty({B, H, W, 3}, opt));
+    out.push_back(torch::empty({B, H, W, 3}, opt));
+  }
+  AT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "raster_fragments", [&] {
     using T = scalar_t;
-    const T* pv = v.data_ptr<T>();
-    const T *px = x.data_ptr<T>(), *py = y.data_ptr<T>();
-    T *pb = bary.data_ptr<T>(), *pd = depth.data_ptr<T>(), *pdx = dx.data_ptr<T>(), *pdy = dy.data_ptr<T>();
+    const T* pp = pos.data_ptr<T>();
+    int64_t* pidx = idx.data_ptr<int64_t>();
+    std::vector<T*> o;
+    for (size_t i = 1; i < out.size(); ++i) o.push_back(out[i].data_ptr<T>());
     const T sx = T(2.0 / double(W)), sy = T(-2.0 / double(H));
-    at::parallel_for(0, N, 4096, [&](int64_t lo, int64_t hi) {
-      for (int64_t n = lo; n < hi; ++n) {
-        const T* c = pv + 12 * n;
-        T m = 0;
-        for (int i = 0; i < 12; ++i) m = std::max(m, std::abs(c[i]));
-        int ex = 0;
-        std::frexp(m, &ex);
-        const T sc = std::ldexp(T(1), -ex);
-        T X[3], Y[3], Z[3], Wc[3];
-        for (int i = 0; i < 3; ++i) {
-          X[i] = c[4 * i] * sc;
-          Y[i] = c[4 * i + 1] * sc;
-          Z[i] = c[4 * i + 2] * sc;
-          Wc[i] = c[4 * i + 3] * sc;
+    const T hx = T(2.0 / double(W)), hy = T(2.0 / double(H));
+    at::parallel_for(0, rows, 16, [&](int64_t lo, int64_t hi) {
+      T c[12], b[3], dx[3], dy[3];
+      for (int64_t r = lo; r < hi; ++r) {
+        const int64_t bi = r / H, row = r - bi * H;
+        // _pixel_centres: (i + 0.5) * (2 / n) - 1, negated for rows.
+        const T y = -((T(row) + T(0.5)) * hy - T(1));
+        int64_t n = first[r];
+        for (int64_t col = 0; col < W; ++col) {
+          const int64_t p = r * W + col;
+          const int64_t f = pid[p];
+          if (f < 0) {
+            if (packed) {
+              for (int k = 0; k < 4; ++k) o[0][4 * p + k] = o[1][4 * p + k] = 0;
+            } else {
+              for (int k = 0; k < 3; ++k) o[3][3 * p + k] = o[5][3 * p + k] = o[6][3 * p + k] = 0;
+              o[4][p] = 0;
+            }
+            continue;
+          }
+          for (int i = 0; i < 3; ++i) {
+            const T* v = pp + (bi * V + pf[3 * f + i]) * 4;
+            for (int k = 0; k < 4; ++k) c[4 * i + k] = v[k];
+          }
+          const T x = (T(col) + T(0.5)) * hx - T(1);
+          const T z = bary_one(c, x, y, sx, sy, b, dx, dy);
+          pidx[n] = p;
+          if (packed) {
+            T* ra = o[0] + 4 * p;
+            T* db = o[1] + 4 * p;
+            ra[0] = b[0], ra[1] = b[1], ra[2] = z, ra[3] = T(f + 1 + offset);
+            db[0] = dx[0], db[1] = dy[0], db[2] = dx[1], db[3] = dy[1];
+          } else {
+            for (int k = 0; k < 3; ++k) {
+              o[0][3 * n + k] = o[3][3 * p + k] = b[k];
+              o[1][3 * n + k] = o[5][3 * p + k] = dx[k];
+              o[2][3 * n + k] = o[6][3 * p + k] = dy[k];
+            }
+            o[4][p] = z;
+          }
+          ++n;
         }
-        T a[3], b[3], e[3];
-        for (int i = 0; i < 3; ++i) {
-          const int j = (i + 1) % 3, k = (i + 2) % 3;
-          a[i] = Y[j] * Wc[k] - Wc[j] * Y[k];
-          b[i] = Wc[j] * X[k] - X[j] * Wc[k];
-          const T cc = X[j] * Y[k] - Y[j] * X[k];
-          e[i] = a[i] * px[n] + b[i] * py[n] + cc;
-        }
-        const T s = e[0] + e[1] + e[2];
-        T* ob = pb + 3 * n;
-        T* odx = pdx + 3 * n;
-        T* ody = pdy + 3 * n;
-        if (s == 0) {
-          for (int i = 0; i < 3; ++i) ob[i] = odx[i] = ody[i] = 0;
-          pd[n] = 0;
-          continue;
-        }
-        const T sa = a[0] + a[1] + a[2], sb = b[0] + b[1] + b[2];
-        for (int i = 0; i < 3; ++i) {
-          ob[i] = e[i] / s;
-          odx[i] = (a[i] - ob[i] * sa) / s * sx;
-          ody[i] = (b[i] - ob[i] * sb) / s * sy;
-        }
-        const T zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
-        const T wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
-        pd[n] = wn != 0 ? zn / wn : T(0);
       }
     });
   });
-  return {bary, depth, dx, dy};
+  return out;
+}
+
+// The first-order backward of raster_fragments, reading the output
+// gradients where autograd left them (undefined: none): unpacked, grads =
+// (bary, bary_dx, bary_dy [N, 3] compact; bary [B, H, W, 3], depth [B, H, W],
+// bary_dx, bary_dy [B, H, W, 3] dense); packed, grads = (rast, db
+// [B, H, W, 4]), rast's depth and id taking none. -> the gradient of pos
+// [B, V, 4]. Threads accumulate into their own copy of it, summed at the
+// end (no atomics; the order of the sums follows the thread split).
+torch::Tensor raster_fragments_backward(torch::Tensor pos, torch::Tensor faces, torch::Tensor tri_id,
+                                        torch::Tensor idx, std::vector<torch::Tensor> grads, bool packed) {
+  TORCH_CHECK(pos.device().is_cpu() && pos.dim() == 3 && pos.size(2) == 4 && idx.scalar_type() == torch::kInt64 &&
+                  grads.size() == (packed ? 2u : 7u),
+              "raster_fragments_backward: expected pos [B, V, 4] float, idx [N] int64 on the CPU and 7 (2 packed) "
+              "gradients");
+  pos = pos.contiguous();
+  faces = faces.contiguous();
+  tri_id = tri_id.contiguous();
+  idx = idx.contiguous();
+  for (auto& t : grads) {
+    if (!t.defined() || t.numel() == 0) {
+      t = torch::Tensor();
+      continue;
+    }
+    TORCH_CHECK(t.scalar_type() == pos.scalar_type(), "raster_fragments_backward: gradient dtype");
+    t = t.contiguous();
+  }
+  const int64_t N = idx.size(0), H = tri_id.size(1), W = tri_id.size(2), V = pos.size(1);
+  const int64_t threads = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), (N + 4095) / 4096));
+  auto acc = torch::zeros({threads, pos.numel()}, pos.options());
+  AT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "raster_fragments_backward", [&] {
+    using T = scalar_t;
+    const T* pp = pos.data_ptr<T>();
+    const int64_t* pf = faces.data_ptr<int64_t>();
+    const int64_t* pid = tri_id.data_ptr<int64_t>();
+    const int64_t* pidx = idx.data_ptr<int64_t>();
+    std::vector<const T*> g;
+    for (auto& t : grads) g.push_back(t.defined() ? t.data_ptr<T>() : nullptr);
+    // Which of bary, depth, d/dcolumn, d/drow receive a gradient at all.
+    const bool has_b = packed ? g[0] != nullptr : (g[0] || g[3]);
+    const bool has_z = !packed && g[4];
+    const bool has_dx = packed ? g[1] != nullptr : (g[1] || g[5]);
+    const bool has_dy = packed ? g[1] != nullptr : (g[2] || g[6]);
+    T* pacc = acc.data_ptr<T>();
+    const T sx = T(2.0 / double(W)), sy = T(-2.0 / double(H));
+    const T hx = T(2.0 / double(W)), hy = T(2.0 / double(H));
+    const int64_t chunk = (N + threads - 1) / threads;
+    at::parallel_for(0, threads, 1, [&](int64_t lo, int64_t hi) {
+      T c[12], gc[12], gB[3], gDx[3], gDy[3], gZ = 0;
+      for (int64_t t = lo; t < hi; ++t) {
+        T* out = pacc + t * pos.numel();
+        for (int64_t n = t * chunk; n < std::min(N, (t + 1) * chunk); ++n) {
+          const int64_t p = pidx[n];
+          if (packed) {
+            const T* r = g[0] ? g[0] + 4 * p : nullptr;
+            const T* d = g[1] ? g[1] + 4 * p : nullptr;
+            gB[0] = r ? r[0] : T(0), gB[1] = r ? r[1] : T(0), gB[2] = 0;
+            gDx[0] = d ? d[0] : T(0), gDx[1] = d ? d[2] : T(0), gDx[2] = 0;
+            gDy[0] = d ? d[1] : T(0), gDy[1] = d ? d[3] : T(0), gDy[2] = 0;
+          } else {
+            for (int k = 0; k < 3; ++k) {
+              gB[k] = (g[0] ? g[0][3 * n + k] : T(0)) + (g[3] ? g[3][3 * p + k] : T(0));
+              gDx[k] = (g[1] ? g[1][3 * n + k] : T(0)) + (g[5] ? g[5][3 * p + k] : T(0));
+              gDy[k] = (g[2] ? g[2][3 * n + k] : T(0)) + (g[6] ? g[6][3 * p + k] : T(0));
+            }
+            gZ = g[4] ? g[4][p] : T(0);
+          }
+          const int64_t bi = p / (H * W), rc = p - bi * H * W, row = rc / W, col = rc - row * W;
+          const int64_t f = pid[p];
+          int64_t vb[3];
+          for (int i = 0; i < 3; ++i) {
+            vb[i] = (bi * V + pf[3 * f + i]) * 4;
+            for (int k = 0; k < 4; ++k) c[4 * i + k] = pp[vb[i] + k];
+          }
+          const T x = (T(col) + T(0.5)) * hx - T(1);
+          const T y = -((T(row) + T(0.5)) * hy - T(1));
+          bary_one_adjoint(c, x, y, sx, sy, has_b ? gB : nullptr, has_dx ? gDx : nullptr, has_dy ? gDy : nullptr,
+                           has_z ? &gZ : nullptr, gc);
+          for (int i = 0; i < 3; ++i)
+            for (int k = 0; k < 4; ++k) out[vb[i] + k] += gc[4 * i + k];
+        }
+      }
+    });
+  });
+  return (threads == 1 ? acc[0] : acc.sum(0)).view(pos.sizes());
 }
 
 }  // namespace difftex
