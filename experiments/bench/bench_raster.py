@@ -226,8 +226,16 @@ def _mitsuba_peers(V, F, mvp, res: int):
         dr.sync_thread()
         return si
 
+    # Two evaluated vertex buffers, 1e-6 apart, set in turn: a deforming mesh.
+    # (Setting the same buffer again is no change, and update() then keeps
+    # the old BVH.)
+    moved = [verts, verts + 1e-6]
+    dr.eval(moved[1])
+    turn = [0]
+
     def cast_rebuilt():
-        sp[key] = verts
+        turn[0] ^= 1
+        sp[key] = moved[turn[0]]
         sp.update()  # rebuilds the BVH (Embree on llvm) before the cast
         return cast()
 

@@ -40,6 +40,7 @@ enum Kind : uint8_t { DEAD = 0, EXACT = 1, FLOAT = 2 };
 
 struct Vert {
   int64_t qx, qy;
+  double nx, ny, nz;  // NDC (the exact path's depth plane), where snapped
   double s;  // power-of-two scale of the float path
   uint8_t code;
   bool snapped;
@@ -83,29 +84,8 @@ bool setup_exact(const Ctx& cx, int64_t f, Exact& t) {
   }
   const int64_t area = t.a[0] * x[0] + t.b[0] * y[0] + t.c[0];
   if (cx.cull ? area <= 0 : area == 0) return false;
-  double nx[3], ny[3], nz[3];
-  for (int i = 0; i < 3; ++i) {
-    const double* p = cx.pos + 4 * fv[i];
-    nx[i] = p[0] / p[3];
-    ny[i] = p[1] / p[3];
-    nz[i] = p[2] / p[3];
-  }
-  const double dx1 = nx[1] - nx[0], dy1 = ny[1] - ny[0], dz1 = nz[1] - nz[0];
-  const double dx2 = nx[2] - nx[0], dy2 = ny[2] - ny[0], dz2 = nz[2] - nz[0];
-  const double d = dx1 * dy2 - dx2 * dy1;
-  t.zx = (dz1 * dy2 - dz2 * dy1) / d;
-  t.zy = (dx1 * dz2 - dx2 * dz1) / d;
-  if (!std::isfinite(t.zx) || !std::isfinite(t.zy)) return false;
-  t.z0 = nz[0];
-  t.x0 = nx[0];
-  t.y0 = ny[0];
-  const int64_t sgn = area > 0 ? 1 : -1;
-  for (int i = 0; i < 3; ++i) {
-    t.a[i] *= sgn;
-    t.b[i] *= sgn;
-    t.c[i] *= sgn;
-    t.thr[i] = (t.a[i] > 0 || (t.a[i] == 0 && t.b[i] > 0)) ? 0 : 1;
-  }
+  // The pixel-centre box first: most triangles of a dense mesh hold no
+  // centre, and this needs no division.
   const int64_t h = int64_t(1) << (cx.S - 1);
   const int64_t xmin = std::min({x[0], x[1], x[2]}), xmax = std::max({x[0], x[1], x[2]});
   const int64_t ymin = std::min({y[0], y[1], y[2]}), ymax = std::max({y[0], y[1], y[2]});
@@ -113,7 +93,25 @@ bool setup_exact(const Ctx& cx, int64_t f, Exact& t) {
   t.c1 = std::min<int64_t>(cx.W - 1, floor_div(xmax + (cx.W - 1) * h, 2 * h));
   t.r0 = std::max<int64_t>(0, -floor_div(-(ymin + (cx.H - 1) * h), 2 * h));
   t.r1 = std::min<int64_t>(cx.H - 1, floor_div(ymax + (cx.H - 1) * h, 2 * h));
-  return t.c0 <= t.c1 && t.r0 <= t.r1;
+  if (!(t.c0 <= t.c1 && t.r0 <= t.r1)) return false;
+  const Vert &v0 = cx.verts[fv[0]], &v1 = cx.verts[fv[1]], &v2 = cx.verts[fv[2]];
+  const double dx1 = v1.nx - v0.nx, dy1 = v1.ny - v0.ny, dz1 = v1.nz - v0.nz;
+  const double dx2 = v2.nx - v0.nx, dy2 = v2.ny - v0.ny, dz2 = v2.nz - v0.nz;
+  const double d = dx1 * dy2 - dx2 * dy1;
+  t.zx = (dz1 * dy2 - dz2 * dy1) / d;
+  t.zy = (dx1 * dz2 - dx2 * dz1) / d;
+  if (!std::isfinite(t.zx) || !std::isfinite(t.zy)) return false;
+  t.z0 = v0.nz;
+  t.x0 = v0.nx;
+  t.y0 = v0.ny;
+  const int64_t sgn = area > 0 ? 1 : -1;
+  for (int i = 0; i < 3; ++i) {
+    t.a[i] *= sgn;
+    t.b[i] *= sgn;
+    t.c[i] *= sgn;
+    t.thr[i] = (t.a[i] > 0 || (t.a[i] == 0 && t.b[i] > 0)) ? 0 : 1;
+  }
+  return true;
 }
 
 // Float-path setup (raster.py _prepare_float); the bounding box is the
@@ -232,7 +230,10 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
         o.snapped = false;
         o.qx = o.qy = 0;
         if (S > 0 && p[3] > 0) {
-          const double fx = (p[0] / p[3]) * sx, fy = (p[1] / p[3]) * sy;
+          o.nx = p[0] / p[3];
+          o.ny = p[1] / p[3];
+          o.nz = p[2] / p[3];
+          const double fx = o.nx * sx, fy = o.ny * sy;
           if (std::abs(fx) <= kGuard && std::abs(fy) <= kGuard) {
             o.snapped = true;
             o.qx = int64_t(std::nearbyint(fx));
@@ -383,138 +384,120 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
 
 namespace {
 
-// Perspective-correct barycentrics of one pixel (geometry/raster.py _bary_at,
-// the same formulas in the same order): c the 12 clip-space corner
-// coordinates, (x, y) the NDC centre, (sx, sy) = (2 / W, -2 / H) -> b, d
-// (d(bary)/d(column)), e (d(bary)/d(row)) [3] each, and the NDC depth; zeros
-// where the triangle is degenerate at the pixel.
+// One triangle's pixel-independent part of geometry/raster.py _bary_at: the
+// corners scaled by a power of two (max |coordinate| in [0.5, 1): no
+// overflow, the same ratios) and the edge-function coefficients a, b, c
+// (e_i = a_i x + b_i y + c_i). Consecutive pixels of a row mostly share a
+// triangle, so this is computed once per run of them.
 template <typename T>
-inline T bary_one(const T* c, T x, T y, T sx, T sy, T* ob, T* odx, T* ody) {
-  T m = 0;
-  for (int i = 0; i < 12; ++i) m = std::max(m, std::abs(c[i]));
-  int ex = 0;
-  std::frexp(m, &ex);
-  const T sc = std::ldexp(T(1), -ex);  // per-triangle power of two: no overflow, same ratios
-  T X[3], Y[3], Z[3], Wc[3];
-  for (int i = 0; i < 3; ++i) {
-    X[i] = c[4 * i] * sc;
-    Y[i] = c[4 * i + 1] * sc;
-    Z[i] = c[4 * i + 2] * sc;
-    Wc[i] = c[4 * i + 3] * sc;
-  }
-  T a[3], b[3], e[3];
-  for (int i = 0; i < 3; ++i) {
-    const int j = (i + 1) % 3, k = (i + 2) % 3;
-    a[i] = Y[j] * Wc[k] - Wc[j] * Y[k];
-    b[i] = Wc[j] * X[k] - X[j] * Wc[k];
-    const T cc = X[j] * Y[k] - Y[j] * X[k];
-    e[i] = a[i] * x + b[i] * y + cc;
-  }
-  const T s = e[0] + e[1] + e[2];
-  if (s == 0) {
-    for (int i = 0; i < 3; ++i) ob[i] = odx[i] = ody[i] = 0;
-    return 0;
-  }
-  const T sa = a[0] + a[1] + a[2], sb = b[0] + b[1] + b[2];
-  for (int i = 0; i < 3; ++i) {
-    ob[i] = e[i] / s;
-    odx[i] = (a[i] - ob[i] * sa) / s * sx;
-    ody[i] = (b[i] - ob[i] * sb) / s * sy;
-  }
-  const T zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
-  const T wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
-  return wn != 0 ? zn / wn : T(0);
-}
+struct Tri {
+  T X[3], Y[3], Z[3], Wc[3], a[3], b[3], c[3], sa, sb, sc;
 
-// The adjoint of bary_one (reverse mode by hand, the same expressions):
-// gb, gdx, gdy [3] and gz the output gradients (null: none) -> g [12] the
-// gradient w.r.t. the corners c. The outputs are invariant to the
-// per-triangle power of two, so the scaled coordinates' gradient times that
-// factor is the gradient w.r.t. c.
-template <typename T>
-inline void bary_one_adjoint(const T* c, T x, T y, T sx, T sy, const T* gB, const T* gDx, const T* gDy,
-                             const T* gZ, T* g) {
-  T m = 0;
-  for (int i = 0; i < 12; ++i) m = std::max(m, std::abs(c[i]));
-  int ex = 0;
-  std::frexp(m, &ex);
-  const T sc = std::ldexp(T(1), -ex);
-  T X[3], Y[3], Z[3], Wc[3];
-  for (int i = 0; i < 3; ++i) {
-    X[i] = c[4 * i] * sc;
-    Y[i] = c[4 * i + 1] * sc;
-    Z[i] = c[4 * i + 2] * sc;
-    Wc[i] = c[4 * i + 3] * sc;
-  }
-  T a[3], b[3], e[3];
-  for (int i = 0; i < 3; ++i) {
-    const int j = (i + 1) % 3, k = (i + 2) % 3;
-    a[i] = Y[j] * Wc[k] - Wc[j] * Y[k];
-    b[i] = Wc[j] * X[k] - X[j] * Wc[k];
-    const T cc = X[j] * Y[k] - Y[j] * X[k];
-    e[i] = a[i] * x + b[i] * y + cc;
-  }
-  for (int i = 0; i < 12; ++i) g[i] = 0;
-  const T s = e[0] + e[1] + e[2];
-  if (s == 0) return;  // the outputs are the constant 0 there
-  const T sa = a[0] + a[1] + a[2], sb = b[0] + b[1] + b[2];
-  const T is = T(1) / s;
-  T bary[3], ga[3], gb[3], ge[3];
-  T gs = 0, gsa = 0, gsb = 0;
-  for (int i = 0; i < 3; ++i) {
-    bary[i] = e[i] / s;
-    T gbary = gB ? gB[i] : T(0);
-    ga[i] = gb[i] = 0;
-    if (gDx) {
-      const T dx = (a[i] - bary[i] * sa) / s * sx;
-      ga[i] += sx * gDx[i] * is;
-      gsa -= sx * gDx[i] * bary[i] * is;
-      gbary -= sx * sa * gDx[i] * is;
-      gs -= gDx[i] * dx * is;
+  void load(const T* pos, const int64_t* corner_rows) {
+    T m = 0;
+    for (int i = 0; i < 3; ++i) {
+      const T* v = pos + 4 * corner_rows[i];
+      X[i] = v[0], Y[i] = v[1], Z[i] = v[2], Wc[i] = v[3];
+      m = std::max({m, std::abs(v[0]), std::abs(v[1]), std::abs(v[2]), std::abs(v[3])});
     }
-    if (gDy) {
-      const T dy = (b[i] - bary[i] * sb) / s * sy;
-      gb[i] += sy * gDy[i] * is;
-      gsb -= sy * gDy[i] * bary[i] * is;
-      gbary -= sy * sb * gDy[i] * is;
-      gs -= gDy[i] * dy * is;
+    int ex = 0;
+    std::frexp(m, &ex);
+    sc = std::ldexp(T(1), -ex);
+    for (int i = 0; i < 3; ++i) X[i] *= sc, Y[i] *= sc, Z[i] *= sc, Wc[i] *= sc;
+    for (int i = 0; i < 3; ++i) {
+      const int j = (i + 1) % 3, k = (i + 2) % 3;
+      a[i] = Y[j] * Wc[k] - Wc[j] * Y[k];
+      b[i] = Wc[j] * X[k] - X[j] * Wc[k];
+      c[i] = X[j] * Y[k] - Y[j] * X[k];
     }
-    ge[i] = gbary * is;
-    gs -= gbary * bary[i] * is;
+    sa = a[0] + a[1] + a[2];
+    sb = b[0] + b[1] + b[2];
   }
-  T gZc[3] = {0, 0, 0}, gWc[3] = {0, 0, 0};
-  if (gZ) {
+
+  // Barycentrics ob, d/d(column) odx, d/d(row) ody [3] and the NDC depth at
+  // the NDC point (x, y); (sx, sy) = (2 / W, -2 / H). Zeros where degenerate.
+  T eval(T x, T y, T sx, T sy, T* ob, T* odx, T* ody) const {
+    T e[3];
+    for (int i = 0; i < 3; ++i) e[i] = a[i] * x + b[i] * y + c[i];
+    const T s = e[0] + e[1] + e[2];
+    if (s == 0) {
+      for (int i = 0; i < 3; ++i) ob[i] = odx[i] = ody[i] = 0;
+      return 0;
+    }
+    const T is = T(1) / s, isx = is * sx, isy = is * sy;
+    for (int i = 0; i < 3; ++i) {
+      ob[i] = e[i] * is;
+      odx[i] = (a[i] - ob[i] * sa) * isx;
+      ody[i] = (b[i] - ob[i] * sb) * isy;
+    }
     const T zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
     const T wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
-    if (wn != 0) {
-      const T gzn = *gZ / wn, gwn = -*gZ * (zn / wn) / wn;
-      for (int i = 0; i < 3; ++i) {
-        ge[i] += gzn * Z[i] + gwn * Wc[i];
-        gZc[i] = gzn * e[i];
-        gWc[i] = gwn * e[i];
+    return wn != 0 ? zn / wn : T(0);
+  }
+
+  // The adjoint of eval (reverse mode by hand): gB, gDx, gDy [3] and gZ the
+  // output gradients (null: none) -> g [12] the gradient w.r.t. the
+  // unscaled corners (the outputs do not depend on the scale, so it is the
+  // scaled corners' gradient times sc).
+  void adjoint(T x, T y, T sx, T sy, const T* gB, const T* gDx, const T* gDy, const T* gZ, T* g) const {
+    for (int i = 0; i < 12; ++i) g[i] = 0;
+    T e[3];
+    for (int i = 0; i < 3; ++i) e[i] = a[i] * x + b[i] * y + c[i];
+    const T s = e[0] + e[1] + e[2];
+    if (s == 0) return;  // the outputs are the constant 0 there
+    const T is = T(1) / s;
+    T ga[3], gb[3], ge[3];
+    T gs = 0, gsa = 0, gsb = 0;
+    for (int i = 0; i < 3; ++i) {
+      const T bary = e[i] * is;
+      T gbary = gB ? gB[i] : T(0);
+      ga[i] = gb[i] = 0;
+      if (gDx) {
+        const T dx = (a[i] - bary * sa) * is * sx;
+        ga[i] += sx * gDx[i] * is;
+        gsa -= sx * gDx[i] * bary * is;
+        gbary -= sx * sa * gDx[i] * is;
+        gs -= gDx[i] * dx * is;
+      }
+      if (gDy) {
+        const T dy = (b[i] - bary * sb) * is * sy;
+        gb[i] += sy * gDy[i] * is;
+        gsb -= sy * gDy[i] * bary * is;
+        gbary -= sy * sb * gDy[i] * is;
+        gs -= gDy[i] * dy * is;
+      }
+      ge[i] = gbary * is;
+      gs -= gbary * bary * is;
+    }
+    T gX[3] = {0, 0, 0}, gY[3] = {0, 0, 0}, gZc[3] = {0, 0, 0}, gW[3] = {0, 0, 0};
+    if (gZ) {
+      const T zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
+      const T wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
+      if (wn != 0) {
+        const T gzn = *gZ / wn, gwn = -*gZ * (zn / wn) / wn;
+        for (int i = 0; i < 3; ++i) {
+          ge[i] += gzn * Z[i] + gwn * Wc[i];
+          gZc[i] = gzn * e[i];
+          gW[i] = gwn * e[i];
+        }
       }
     }
+    for (int i = 0; i < 3; ++i) {
+      const int j = (i + 1) % 3, k = (i + 2) % 3;
+      const T gei = ge[i] + gs;
+      const T gai = ga[i] + gsa + gei * x, gbi = gb[i] + gsb + gei * y, gci = gei;
+      gY[j] += gai * Wc[k], gW[k] += gai * Y[j], gW[j] -= gai * Y[k], gY[k] -= gai * Wc[j];
+      gW[j] += gbi * X[k], gX[k] += gbi * Wc[j], gX[j] -= gbi * Wc[k], gW[k] -= gbi * X[j];
+      gX[j] += gci * Y[k], gY[k] += gci * X[j], gY[j] -= gci * X[k], gX[k] -= gci * Y[j];
+    }
+    for (int i = 0; i < 3; ++i) {
+      g[4 * i] = gX[i] * sc;
+      g[4 * i + 1] = gY[i] * sc;
+      g[4 * i + 2] = gZc[i] * sc;
+      g[4 * i + 3] = gW[i] * sc;
+    }
   }
-  T gX[3], gY[3], gW[3];
-  for (int i = 0; i < 3; ++i) {
-    gX[i] = gY[i] = 0;
-    gW[i] = gWc[i];
-  }
-  for (int i = 0; i < 3; ++i) {
-    const int j = (i + 1) % 3, k = (i + 2) % 3;
-    const T gei = ge[i] + gs;
-    const T gai = ga[i] + gsa + gei * x, gbi = gb[i] + gsb + gei * y, gci = gei;
-    gY[j] += gai * Wc[k], gW[k] += gai * Y[j], gW[j] -= gai * Y[k], gY[k] -= gai * Wc[j];
-    gW[j] += gbi * X[k], gX[k] += gbi * Wc[j], gX[j] -= gbi * Wc[k], gW[k] -= gbi * X[j];
-    gX[j] += gci * Y[k], gY[k] += gci * X[j], gY[j] -= gci * X[k], gX[k] -= gci * Y[j];
-  }
-  for (int i = 0; i < 3; ++i) {
-    g[4 * i] = gX[i] * sc;
-    g[4 * i + 1] = gY[i] * sc;
-    g[4 * i + 2] = gZc[i] * sc;
-    g[4 * i + 3] = gW[i] * sc;
-  }
-}
+};
 
 }  // namespace
 
@@ -532,7 +515,7 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
   pos = pos.contiguous();
   faces = faces.contiguous();
   tri_id = tri_id.contiguous();
-  const int64_t B = tri_id.size(0), H = tri_id.size(1), W = tri_id.size(2), V = pos.size(1);
+  const int64_t B = tri_id.size(0), H = tri_id.size(1), W = tri_id.size(2), V = pos.size(1), F = faces.size(0);
   const int64_t rows = B * H;
   const int64_t* pid = tri_id.data_ptr<int64_t>();
   const int64_t* pf = faces.data_ptr<int64_t>();
@@ -570,7 +553,9 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
     const T sx = T(2.0 / double(W)), sy = T(-2.0 / double(H));
     const T hx = T(2.0 / double(W)), hy = T(2.0 / double(H));
     at::parallel_for(0, rows, 16, [&](int64_t lo, int64_t hi) {
-      T c[12], b[3], dx[3], dy[3];
+      T b[3], dx[3], dy[3];
+      Tri<T> tri;
+      int64_t loaded = -1;  // the (batch, face) in tri
       for (int64_t r = lo; r < hi; ++r) {
         const int64_t bi = r / H, row = r - bi * H;
         // _pixel_centres: (i + 0.5) * (2 / n) - 1, negated for rows.
@@ -588,12 +573,13 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
             }
             continue;
           }
-          for (int i = 0; i < 3; ++i) {
-            const T* v = pp + (bi * V + pf[3 * f + i]) * 4;
-            for (int k = 0; k < 4; ++k) c[4 * i + k] = v[k];
+          if (bi * F + f != loaded) {
+            const int64_t rows3[3] = {bi * V + pf[3 * f], bi * V + pf[3 * f + 1], bi * V + pf[3 * f + 2]};
+            tri.load(pp, rows3);
+            loaded = bi * F + f;
           }
           const T x = (T(col) + T(0.5)) * hx - T(1);
-          const T z = bary_one(c, x, y, sx, sy, b, dx, dy);
+          const T z = tri.eval(x, y, sx, sy, b, dx, dy);
           pidx[n] = p;
           if (packed) {
             T* ra = o[0] + 4 * p;
@@ -661,10 +647,13 @@ torch::Tensor raster_fragments_backward(torch::Tensor pos, torch::Tensor faces, 
     const T sx = T(2.0 / double(W)), sy = T(-2.0 / double(H));
     const T hx = T(2.0 / double(W)), hy = T(2.0 / double(H));
     const int64_t chunk = (N + threads - 1) / threads;
+    const int64_t F = faces.size(0);
     at::parallel_for(0, threads, 1, [&](int64_t lo, int64_t hi) {
-      T c[12], gc[12], gB[3], gDx[3], gDy[3], gZ = 0;
+      T gc[12], gB[3], gDx[3], gDy[3], gZ = 0;
+      Tri<T> tri;
       for (int64_t t = lo; t < hi; ++t) {
         T* out = pacc + t * pos.numel();
+        int64_t loaded = -1;
         for (int64_t n = t * chunk; n < std::min(N, (t + 1) * chunk); ++n) {
           const int64_t p = pidx[n];
           if (packed) {
@@ -683,17 +672,17 @@ torch::Tensor raster_fragments_backward(torch::Tensor pos, torch::Tensor faces, 
           }
           const int64_t bi = p / (H * W), rc = p - bi * H * W, row = rc / W, col = rc - row * W;
           const int64_t f = pid[p];
-          int64_t vb[3];
-          for (int i = 0; i < 3; ++i) {
-            vb[i] = (bi * V + pf[3 * f + i]) * 4;
-            for (int k = 0; k < 4; ++k) c[4 * i + k] = pp[vb[i] + k];
+          const int64_t rows3[3] = {bi * V + pf[3 * f], bi * V + pf[3 * f + 1], bi * V + pf[3 * f + 2]};
+          if (bi * F + f != loaded) {
+            tri.load(pp, rows3);
+            loaded = bi * F + f;
           }
           const T x = (T(col) + T(0.5)) * hx - T(1);
           const T y = -((T(row) + T(0.5)) * hy - T(1));
-          bary_one_adjoint(c, x, y, sx, sy, has_b ? gB : nullptr, has_dx ? gDx : nullptr, has_dy ? gDy : nullptr,
-                           has_z ? &gZ : nullptr, gc);
+          tri.adjoint(x, y, sx, sy, has_b ? gB : nullptr, has_dx ? gDx : nullptr, has_dy ? gDy : nullptr,
+                      has_z ? &gZ : nullptr, gc);
           for (int i = 0; i < 3; ++i)
-            for (int k = 0; k < 4; ++k) out[vb[i] + k] += gc[4 * i + k];
+            for (int k = 0; k < 4; ++k) out[4 * rows3[i] + k] += gc[4 * i + k];
         }
       }
     });
