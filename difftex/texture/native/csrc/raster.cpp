@@ -38,12 +38,15 @@ constexpr int64_t kBand = 8;  // rows a band
 
 enum Kind : uint8_t { DEAD = 0, EXACT = 1, FLOAT = 2 };
 
-struct Vert {
-  int64_t qx, qy;
+// Per vertex, split by use so that the per-triangle pass over a big mesh
+// touches few bytes a corner: the outcode (bit 7: snapped) and the snapped
+// position (|q| <= 2^29 fits int32) for every triangle, the NDC and the
+// float path's scale only for the triangles that survive.
+constexpr uint8_t kSnapped = 0x80;
+
+struct VertCold {
   double nx, ny, nz;  // NDC (the exact path's depth plane), where snapped
-  double s;  // power-of-two scale of the float path
-  uint8_t code;
-  bool snapped;
+  double s;           // power-of-two scale of the float path
 };
 
 struct Exact {
@@ -62,19 +65,23 @@ inline int64_t floor_div(int64_t a, int64_t d) { return a >= 0 ? a / d : -((-a +
 struct Ctx {
   const double* pos;  // [V, 4] of this batch item
   const int64_t* faces;
-  const Vert* verts;
+  const uint8_t* code;
+  const int32_t* q;  // [V, 2]
+  const VertCold* cold;
   int64_t H, W, S;
   bool cull;
 };
 
 // Exact-path setup (raster.py _prepare_exact); false where the triangle
-// covers nothing.
-bool setup_exact(const Ctx& cx, int64_t f, Exact& t) {
+// covers nothing. With box_only, only what the binning needs (edges, the
+// culling and the pixel-centre box, all integer): the depth plane and its
+// finiteness test wait for the rasterizing pass.
+bool setup_exact(const Ctx& cx, int64_t f, Exact& t, bool box_only = false) {
   const int64_t* fv = cx.faces + 3 * f;
   int64_t x[3], y[3];
   for (int i = 0; i < 3; ++i) {
-    x[i] = cx.verts[fv[i]].qx;
-    y[i] = cx.verts[fv[i]].qy;
+    x[i] = cx.q[2 * fv[i]];
+    y[i] = cx.q[2 * fv[i] + 1];
   }
   for (int i = 0; i < 3; ++i) {
     const int j = (i + 1) % 3, k = (i + 2) % 3;
@@ -86,15 +93,18 @@ bool setup_exact(const Ctx& cx, int64_t f, Exact& t) {
   if (cx.cull ? area <= 0 : area == 0) return false;
   // The pixel-centre box first: most triangles of a dense mesh hold no
   // centre, and this needs no division.
+  // Floor / ceiling division by 2h = 2^S as arithmetic shifts (an int64
+  // idiv per side cost more than the rest of the test).
   const int64_t h = int64_t(1) << (cx.S - 1);
   const int64_t xmin = std::min({x[0], x[1], x[2]}), xmax = std::max({x[0], x[1], x[2]});
   const int64_t ymin = std::min({y[0], y[1], y[2]}), ymax = std::max({y[0], y[1], y[2]});
-  t.c0 = std::max<int64_t>(0, -floor_div(-(xmin + (cx.W - 1) * h), 2 * h));
-  t.c1 = std::min<int64_t>(cx.W - 1, floor_div(xmax + (cx.W - 1) * h, 2 * h));
-  t.r0 = std::max<int64_t>(0, -floor_div(-(ymin + (cx.H - 1) * h), 2 * h));
-  t.r1 = std::min<int64_t>(cx.H - 1, floor_div(ymax + (cx.H - 1) * h, 2 * h));
+  t.c0 = std::max<int64_t>(0, -((-(xmin + (cx.W - 1) * h)) >> cx.S));
+  t.c1 = std::min<int64_t>(cx.W - 1, (xmax + (cx.W - 1) * h) >> cx.S);
+  t.r0 = std::max<int64_t>(0, -((-(ymin + (cx.H - 1) * h)) >> cx.S));
+  t.r1 = std::min<int64_t>(cx.H - 1, (ymax + (cx.H - 1) * h) >> cx.S);
   if (!(t.c0 <= t.c1 && t.r0 <= t.r1)) return false;
-  const Vert &v0 = cx.verts[fv[0]], &v1 = cx.verts[fv[1]], &v2 = cx.verts[fv[2]];
+  if (box_only) return true;
+  const VertCold &v0 = cx.cold[fv[0]], &v1 = cx.cold[fv[1]], &v2 = cx.cold[fv[2]];
   const double dx1 = v1.nx - v0.nx, dy1 = v1.ny - v0.ny, dz1 = v1.nz - v0.nz;
   const double dx2 = v2.nx - v0.nx, dy2 = v2.ny - v0.ny, dz2 = v2.nz - v0.nz;
   const double d = dx1 * dy2 - dx2 * dy1;
@@ -122,7 +132,7 @@ bool setup_float(const Ctx& cx, int64_t f, Float& t) {
   double X[3], Y[3], Z[3], Wc[3];
   for (int i = 0; i < 3; ++i) {
     const double* p = cx.pos + 4 * fv[i];
-    const double s = cx.verts[fv[i]].s;
+    const double s = cx.cold[fv[i]].s;
     X[i] = p[0] * s;
     Y[i] = p[1] * s;
     Z[i] = p[2] * s;
@@ -210,7 +220,9 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
   for (int64_t c = 0; c < W; ++c) xs[c] = (double(c) + 0.5) * (2.0 / double(W)) - 1.0;
   for (int64_t r = 0; r < H; ++r) ys[r] = -((double(r) + 0.5) * (2.0 / double(H)) - 1.0);
   const int64_t nb = (H + kBand - 1) / kBand;
-  std::vector<Vert> verts(V);
+  std::vector<uint8_t> vcode(V);
+  std::vector<int32_t> vq(2 * V);
+  std::vector<VertCold> vcold(V);
   std::vector<uint8_t> kind(F);
   std::vector<int32_t> band0(F), band1(F);
 
@@ -220,40 +232,40 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     at::parallel_for(0, V, 4096, [&](int64_t lo, int64_t hi) {
       for (int64_t v = lo; v < hi; ++v) {
         const double* p = P + 4 * v;
-        Vert& o = verts[v];
+        VertCold& o = vcold[v];
         int ex = 0;
         std::frexp(std::max({std::abs(p[0]), std::abs(p[1]), std::abs(p[2]), std::abs(p[3])}), &ex);
         o.s = std::ldexp(1.0, -ex);
         const double X = p[0] * o.s, Y = p[1] * o.s, Z = p[2] * o.s, Wc = p[3] * o.s;
-        o.code = uint8_t((X > Wc) | ((X < -Wc) << 1) | ((Y > Wc) << 2) | ((Y < -Wc) << 3) | ((Z > Wc) << 4) |
+        uint8_t code = uint8_t((X > Wc) | ((X < -Wc) << 1) | ((Y > Wc) << 2) | ((Y < -Wc) << 3) | ((Z > Wc) << 4) |
                          ((Z < -Wc) << 5));
-        o.snapped = false;
-        o.qx = o.qy = 0;
+        vq[2 * v] = vq[2 * v + 1] = 0;
         if (S > 0 && p[3] > 0) {
           o.nx = p[0] / p[3];
           o.ny = p[1] / p[3];
           o.nz = p[2] / p[3];
           const double fx = o.nx * sx, fy = o.ny * sy;
           if (std::abs(fx) <= kGuard && std::abs(fy) <= kGuard) {
-            o.snapped = true;
-            o.qx = int64_t(std::nearbyint(fx));
-            o.qy = int64_t(std::nearbyint(fy));
+            code |= kSnapped;
+            vq[2 * v] = int32_t(std::nearbyint(fx));
+            vq[2 * v + 1] = int32_t(std::nearbyint(fy));
           }
         }
+        vcode[v] = code;
       }
     });
-    const Ctx cx{P, faces.data_ptr<int64_t>(), verts.data(), H, W, S, cull};
+    const Ctx cx{P, faces.data_ptr<int64_t>(), vcode.data(), vq.data(), vcold.data(), H, W, S, cull};
     // Triangles: which path, and the bands of rows they touch.
     at::parallel_for(0, F, 2048, [&](int64_t lo, int64_t hi) {
       Exact e;
       Float fl;
       for (int64_t f = lo; f < hi; ++f) {
         const int64_t* fv = cx.faces + 3 * f;
-        const Vert &v0 = verts[fv[0]], &v1 = verts[fv[1]], &v2 = verts[fv[2]];
+        const uint8_t c0 = vcode[fv[0]], c1 = vcode[fv[1]], c2 = vcode[fv[2]];
         kind[f] = DEAD;
-        if (v0.code & v1.code & v2.code) continue;
-        if (v0.snapped && v1.snapped && v2.snapped) {
-          if (!setup_exact(cx, f, e)) continue;
+        if (c0 & c1 & c2 & ~kSnapped) continue;
+        if (c0 & c1 & c2 & kSnapped) {
+          if (!setup_exact(cx, f, e, true)) continue;
           kind[f] = EXACT;
           band0[f] = int32_t(e.r0 / kBand);
           band1[f] = int32_t(e.r1 / kBand);
@@ -324,7 +336,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
         for (int64_t li = start[band]; li < start[band + 1]; ++li) {
           const int64_t f = list[li];
           if (kind[f] == EXACT) {
-            setup_exact(cx, f, e);
+            if (!setup_exact(cx, f, e)) continue;  // a depth plane that is not finite
             const int64_t h = int64_t(1) << (S - 1), step = 2 * h;
             const int64_t r0 = std::max(e.r0, R0), r1 = std::min(e.r1, R1 - 1);
             const int64_t qx0 = (2 * e.c0 + 1 - W) * h;
