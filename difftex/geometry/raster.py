@@ -924,8 +924,9 @@ def _layers(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_backface
         with torch.no_grad():
             tri_id, zbuf = _visibility(pos, faces, H, W, cull_backfaces, floor)
         yield emit(pos, faces, tri_id)
-        # Background pixels keep floor (+inf, max id): nothing lies behind it.
-        floor = (zbuf, torch.where(tri_id.reshape(-1) >= 0, tri_id.reshape(-1), _ID_EMPTY))
+        # A background pixel's floor depth is +inf: no finite depth passes it,
+        # whatever its id (-1).
+        floor = (zbuf, tri_id.reshape(-1))
 
 
 def _fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
