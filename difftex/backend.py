@@ -25,9 +25,9 @@ that sets the choice until changed):
 * ``"reference"``: the gather reference for every read, kernel off.
 
 ``rasterize`` / ``depth_peel`` follow the same choice: "auto" and "native"
-run their visibility pass and the forward of their barycentric pass in the
-native kernel on the CPU (identical triangle ids), the other two the torch
-path (geometry/raster.py, the reference).
+run their visibility pass and their barycentric pass (forward and
+first-order backward) in the native kernel on the CPU (identical triangle
+ids), the other two the torch path (geometry/raster.py, the reference).
 
 Whatever the choice, double backward (``create_graph=True``) runs the
 differentiable torch ops, and CUDA / MPS / XPU tensors never reach the
