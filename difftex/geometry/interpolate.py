@@ -78,11 +78,10 @@ def interpolate(
         raise ValueError(f"attr batch {Ba} does not match the fragments' batch {B} (either may be 1)")
     Bo = max(B, Ba)
     F = index.shape[0]
-    mask = tri_id >= 0
-    if bool(mask.any()) and int(tri_id.max()) >= F:
+    top = int(tri_id.max()) if tri_id.numel() else -1  # background is -1
+    if top >= F:
         raise ValueError(
-            f"{index_name} has {F} faces but frags.tri_id refers to face {int(tri_id.max())}; "
-            "pass the faces given to rasterize"
+            f"{index_name} has {F} faces but frags.tri_id refers to face {top}; pass the faces given to rasterize"
         )
 
     dtype = torch.promote_types(attr.dtype, frags.bary.dtype)
@@ -110,7 +109,11 @@ def interpolate(
     out_rows = Bo * HW if vals.shape[0] == 1 else HW
 
     def weigh(wc: Tensor) -> Tensor:
-        vc = (wc.to(dtype)[None, :, :, None] * vals).sum(-2)  # [Bv, N, A]
+        wc = wc.to(dtype)[None, :, :, None]
+        # Three products summed explicitly: a reduction over the size-3 axis
+        # is several times slower on CPU (measured).
+        vc = vals[:, :, 0] * wc[:, :, 0]  # [Bv, N, A]
+        vc = vc.addcmul_(vals[:, :, 1], wc[:, :, 1]).addcmul_(vals[:, :, 2], wc[:, :, 2])
         out = torch.zeros((vals.shape[0], out_rows, A), dtype=dtype, device=device)
         out.index_copy_(1, idx, vc)  # in place on fresh zeros: no extra copy
         return out.view(Bo, H, W, A)
