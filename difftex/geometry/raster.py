@@ -622,7 +622,7 @@ def _fragments(
 
 
 def _visibility(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool,
-                floor: Optional[tuple[Tensor, Tensor]] = None) -> tuple[Tensor, Tensor]:
+                floor: Optional[tuple[Tensor, Tensor]] = None, layers: int = 1) -> tuple[Tensor, Tensor]:
     """Z-buffer: ([B, H, W] int64 id of the nearest covering triangle or -1, [B * H * W] float64 depth).
 
     Depths are compared in float64, nearest wins, equal depths go to the
@@ -630,7 +630,10 @@ def _visibility(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool
     and CUDA). ``floor`` = (depth [B * H * W] float64, id [B * H * W] int64)
     keeps only fragments behind it in (depth, id) order: the next layer of
     depth peeling. The background's depth is +inf. The native kernel serves
-    CPU tensors where ``difftex.backend`` sends them there.
+    CPU tensors where ``difftex.backend`` sends them there; there ``layers`` >
+    1 (without a floor) returns that many nearest fragments per pixel at
+    once, ids [B, H, W, layers] and depths [B * H * W, layers] (the torch
+    path returns one layer whatever ``layers`` says).
     """
     from ..texture import native
 
@@ -641,7 +644,9 @@ def _visibility(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool
         empty_z = torch.empty(0, dtype=torch.float64)
         fz, fid = floor if floor is not None else (empty_z, torch.empty(0, dtype=torch.int64))
         tri_id, zbuf = mod.raster(pos.contiguous(), faces.contiguous(), H, W, cull_backfaces,
-                                  _subpixel_bits(H, W), fz.contiguous(), fid.contiguous())
+                                  _subpixel_bits(H, W), fz.contiguous(), fid.contiguous(), layers=layers)
+        if layers > 1:
+            return tri_id.view(B, H, W, layers), zbuf.view(-1, layers)
         return tri_id.view(B, H, W), zbuf.view(-1)
     F = faces.shape[0]
     zbuf = torch.full((B * H * W,), float("inf"), dtype=torch.float64, device=pos.device)
@@ -878,8 +883,10 @@ def depth_peel(
     coplanar fragments come one per layer, lowest id first, and no fragment
     appears twice. Pixels with fewer than k + 1 fragments are background
     (``tri_id = -1``) in layer k. Each pass keeps the previous layer's float64
-    depth and id per pixel as a floor (the native kernel and the torch path
-    alike); every layer costs about one rasterization.
+    depth and id per pixel as a floor (the torch path; the native kernel keeps
+    each pixel's ``layers`` nearest fragments in one pass, a k-buffer, with
+    the same result); every layer costs about one rasterization, less with
+    the kernel.
 
     Args:
         pos, faces, resolution, cull_backfaces: as for :func:`rasterize`.
@@ -897,7 +904,8 @@ def depth_peel(
         raise TypeError(f"depth_peel: layers must be an int, got {type(layers).__name__}")
     if layers < 1:
         raise ValueError(f"depth_peel: layers must be >= 1, got {layers}")
-    return list(itertools.islice(peel(pos, faces, resolution, cull_backfaces=cull_backfaces), layers))
+    return list(itertools.islice(_layers(pos, faces, resolution, cull_backfaces, _fragments_of, at_once=layers),
+                                 layers))
 
 
 def peel(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cull_backfaces: bool = False) -> Iterator[Fragments]:
@@ -912,9 +920,10 @@ def peel(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cull_backface
 
 
 def _layers(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_backfaces: bool,
-            emit: Callable[[Tensor, Tensor, Tensor], _T]) -> Iterator[_T]:
+            emit: Callable[[Tensor, Tensor, Tensor], _T], at_once: int = 1) -> Iterator[_T]:
     """Depth layers nearest first, without end: ``emit(pos, faces, tri_id)`` of the checked arguments and each
-    layer's visible triangle ids [B, H, W]."""
+    layer's visible triangle ids [B, H, W]. ``at_once``: the first visibility pass finds that many layers
+    where the native kernel serves (its k-buffer), the rest come one pass each."""
     pos = _check_pos(pos)
     faces = check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
     H, W = _check_resolution(resolution)
@@ -922,11 +931,14 @@ def _layers(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_backface
     floor = None
     while True:
         with torch.no_grad():
-            tri_id, zbuf = _visibility(pos, faces, H, W, cull_backfaces, floor)
-        yield emit(pos, faces, tri_id)
+            tri_id, zbuf = _visibility(pos, faces, H, W, cull_backfaces, floor, at_once if floor is None else 1)
+        if tri_id.dim() == 3:
+            tri_id, zbuf = tri_id[..., None], zbuf[:, None]
+        for k in range(tri_id.shape[-1]):
+            yield emit(pos, faces, tri_id[..., k].contiguous())
         # A background pixel's floor depth is +inf: no finite depth passes it,
         # whatever its id (-1).
-        floor = (zbuf, tri_id.reshape(-1))
+        floor = (zbuf[:, -1].contiguous(), tri_id[..., -1].reshape(-1))
 
 
 def _fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:

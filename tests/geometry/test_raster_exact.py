@@ -3,6 +3,8 @@ triangle ids against a float64 ray cast, depth peeling."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
@@ -332,3 +334,30 @@ def test_subpixel_bits_and_ray_cast_checks():
     pos = torch.tensor([[0.0, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, -1.0], [0.0, 1.0, 0.0, 1.0]])
     with pytest.raises(ValueError, match="ray_cast: every vertex needs w > 0"):
         ray_cast(pos, torch.tensor([[0, 1, 2]]), (4, 4))
+
+
+@pytest.mark.parametrize("cull", [False, True])
+def test_kbuffer_layers_equal_layer_by_layer_peeling(cull):
+    # depth_peel on the kernel keeps each pixel's K nearest fragments in one
+    # pass (a k-buffer); the torch path peels one layer a pass behind a floor.
+    # The ids must be the same, ties included (the mixed scene duplicates 30
+    # faces: equal depths, decided by id, one per layer), also when the
+    # k-buffer's layers are followed by floor-peeled ones.
+    from difftex.geometry.raster import _fragments_of, _layers
+
+    pos, F = _mixed_scene()
+    pos = torch.stack((pos, pos * 1.5)).float()
+    H, W, K = 29, 37, 5
+    with use_backend("reference"):
+        ref = [fr.tri_id for fr in depth_peel(pos, F, (H, W), K, cull_backfaces=cull)]
+    with use_backend("native"):
+        got = [fr.tri_id for fr in depth_peel(pos, F, (H, W), K, cull_backfaces=cull)]
+        mixed = [fr.tri_id for fr in itertools.islice(
+            _layers(pos, F, (H, W), cull, _fragments_of, at_once=2), K)]
+    for k in range(K):
+        assert torch.equal(got[k], ref[k]), k
+        assert torch.equal(mixed[k], ref[k]), k
+    assert (ref[2] >= 0).sum() > 50  # deep layers are not empty
+    # a duplicated face (id 1282 + i duplicates i) comes right behind its twin
+    twin = (ref[0] >= 0) & (ref[0] < 30)
+    assert twin.any() and torch.equal(ref[1][twin], ref[0][twin] + len(F) - 30)

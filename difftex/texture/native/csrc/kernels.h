@@ -65,10 +65,11 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
 // exact path (0: float path only); floor_z / floor_id [B * H * W] or empty
 // (depth peeling). -> (ids [B * H * W] int64, -1 background, or with count
 // the number of covering fragments; depth [B * H * W] float64, +inf
-// background).
+// background). With layers K > 1 (no floor, no count) the K nearest
+// fragments per pixel in (depth, id) order, [B * H * W * K] each.
 std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor faces, int64_t H, int64_t W,
                                                 bool cull, int64_t bits, torch::Tensor floor_z,
-                                                torch::Tensor floor_id, bool count);
+                                                torch::Tensor floor_id, bool count, int64_t layers);
 // raster.cpp: rasterize's differentiable pass, forward (geometry/raster.py
 // _fragments_of; the torch _bary_at gives the gradients). pos [B, V, 4]
 // float, faces [F, 3] int64, tri_id [B, H, W] int64 (-1 background) ->

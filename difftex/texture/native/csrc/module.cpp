@@ -77,7 +77,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("levels"), py::arg("kind"), py::arg("max_aniso"), py::arg("tolerance"));
   m.def("raster", &raster, "rasterize's visibility pass (ids and float64 depth)", py::arg("pos"), py::arg("faces"),
         py::arg("H"), py::arg("W"), py::arg("cull"), py::arg("bits"), py::arg("floor_z"), py::arg("floor_id"),
-        py::kw_only(), py::arg("count") = false);
+        py::kw_only(), py::arg("count") = false, py::arg("layers") = 1);
   m.def("raster_fragments", &raster_fragments, "rasterize's differentiable pass, forward", py::arg("pos"),
         py::arg("faces"), py::arg("tri_id"), py::kw_only(), py::arg("packed") = false, py::arg("offset") = 0);
   m.def("raster_fragments_backward", &raster_fragments_backward, "rasterize's differentiable pass, backward",

@@ -190,7 +190,7 @@ bool setup_float(const Ctx& cx, int64_t f, Float& t) {
 
 std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor faces, int64_t H, int64_t W,
                                                 bool cull, int64_t bits, torch::Tensor floor_z,
-                                                torch::Tensor floor_id, bool count) {
+                                                torch::Tensor floor_id, bool count, int64_t layers) {
   TORCH_CHECK(pos.device().is_cpu() && pos.scalar_type() == torch::kFloat64 && pos.dim() == 3 && pos.size(2) == 4,
               "raster: pos must be a CPU float64 tensor [B, V, 4]");
   TORCH_CHECK(faces.device().is_cpu() && faces.scalar_type() == torch::kInt64 && faces.dim() == 2 &&
@@ -201,6 +201,9 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
   faces = faces.contiguous();
   const int64_t B = pos.size(0), V = pos.size(1), F = faces.size(0), HW = H * W;
   const bool has_floor = floor_z.numel() > 0;
+  TORCH_CHECK(layers >= 1 && (layers == 1 || (!has_floor && !count)),
+              "raster: layers >= 1, and 1 with a floor or a count");
+  const int64_t K = layers;
   if (has_floor) {
     TORCH_CHECK(floor_z.numel() == B * HW && floor_id.numel() == B * HW &&
                     floor_z.scalar_type() == torch::kFloat64 && floor_id.scalar_type() == torch::kInt64,
@@ -208,8 +211,8 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     floor_z = floor_z.contiguous();
     floor_id = floor_id.contiguous();
   }
-  auto ids = torch::empty({B * HW}, torch::kInt64);
-  auto depth = torch::empty({B * HW}, torch::kFloat64);
+  auto ids = torch::empty({B * HW * K}, torch::kInt64);
+  auto depth = torch::empty({B * HW * K}, torch::kFloat64);
   const double* fz = has_floor ? floor_z.data_ptr<double>() : nullptr;
   const int64_t* fi = has_floor ? floor_id.data_ptr<int64_t>() : nullptr;
   int64_t* out_id = ids.data_ptr<int64_t>();
@@ -307,8 +310,8 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
             for (int32_t b = band0[f]; b <= band1[f]; ++b) list[cnt[ch * nb + b]++] = int32_t(f);
     });
     // Bands: each thread owns its rows of the output.
-    int64_t* oid = out_id + bi * HW;
-    double* oz = out_z + bi * HW;
+    int64_t* oid = out_id + bi * HW * K;
+    double* oz = out_z + bi * HW * K;
     const double* bfz = has_floor ? fz + bi * HW : nullptr;
     const int64_t* bfi = has_floor ? fi + bi * HW : nullptr;
     at::parallel_for(0, nb, 1, [&](int64_t lo, int64_t hi) {
@@ -316,7 +319,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
       Float fl;
       for (int64_t band = lo; band < hi; ++band) {
         const int64_t R0 = band * kBand, R1 = std::min(H, R0 + kBand);
-        for (int64_t p = R0 * W; p < R1 * W; ++p) {
+        for (int64_t p = R0 * W * K; p < R1 * W * K; ++p) {
           oz[p] = INFINITY;
           oid[p] = count ? 0 : kEmpty;
         }
@@ -328,10 +331,18 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
             return;
           }
           if (has_floor && !(z > bfz[p] || (z == bfz[p] && f > bfi[p]))) return;
-          if (z < oz[p] || (z == oz[p] && f < oid[p])) {
-            oz[p] = z;
-            oid[p] = f;
+          // The pixel's K nearest fragments so far in (depth, id) order (a
+          // k-buffer; K = 1: the z-buffer): insert unless behind the K-th.
+          double* zs = oz + p * K;
+          int64_t* is = oid + p * K;
+          int64_t k = K - 1;
+          if (!(z < zs[k] || (z == zs[k] && f < is[k]))) return;
+          for (; k > 0 && (z < zs[k - 1] || (z == zs[k - 1] && f < is[k - 1])); --k) {
+            zs[k] = zs[k - 1];
+            is[k] = is[k - 1];
           }
+          zs[k] = z;
+          is[k] = f;
         };
         for (int64_t li = start[band]; li < start[band + 1]; ++li) {
           const int64_t f = list[li];
@@ -386,7 +397,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
           }
         }
         if (!count)
-          for (int64_t p = R0 * W; p < R1 * W; ++p)
+          for (int64_t p = R0 * W * K; p < R1 * W * K; ++p)
             if (oid[p] == kEmpty) oid[p] = -1;
       }
     });
