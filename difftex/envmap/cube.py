@@ -135,7 +135,8 @@ from ..texture.pyramid.mipmap import Pyramid, level_count, mipmap
 from ..texture.sample import sample
 from ..texture.taps import taps
 from ..backend import single_level
-from .directions import _face_coords, cube_to_direction, direction_to_cube
+from ..texture import native
+from .directions import _face_coords, check_dirs_derivs, cube_to_direction, direction_to_cube
 
 #: Width, in [-1, 1] face coordinates, of the band along each edge over which the trilinear level
 #: blends with the neighbouring face's (see ``_log2_length``).
@@ -311,6 +312,22 @@ def _atlas(level: Tensor, g: int) -> Tensor:
     return _Atlas.apply(level, g)
 
 
+@lru_cache(maxsize=64)
+def _ring_tables(n: int) -> tuple[Tensor, Tensor]:
+    """``_gutter_table(n, 1)`` in the ring order of the native read (``csrc/cube.cpp``): per face (P = n + 2)
+    4 P - 4 slots, row 0 (x), row P - 1 (P + x), column 0 (2 P + y - 1), column P - 1 (3 P - 2 + y - 1);
+    [6 (4 P - 4), 3] source indices flat in [6, n, n] (int64) and weights (float64)."""
+    P = n + 2
+    pos, idx, w = _gutter_table(n, 1)
+    f, rc = pos // (P * P), pos % (P * P)
+    y, x = rc // P, rc % P
+    slot = torch.where(y == 0, x, torch.where(y == P - 1, P + x, torch.where(x == 0, 2 * P + y - 1, 3 * P - 3 + y)))
+    slot = f * (4 * P - 4) + slot
+    ri, rw = torch.empty_like(idx), torch.empty_like(w)
+    ri[slot], rw[slot] = idx, w
+    return ri.contiguous(), rw.contiguous()
+
+
 def _atlas_uv(face: Tensor, uv: Tensor, n: int, g: int) -> Tensor:
     """Face uv [..., 2] of faces [...] (any dtype) -> uv in the atlas of faces of n texels with gutter g."""
     P = n + 2 * g
@@ -387,18 +404,7 @@ def cubemap(
     Bt, _, C, S, _ = base.shape
     Bd, H, W, _ = dirs.shape
     mip = filter in MIP_FILTERS
-    derivs = []
-    if mip or dirs_dx is not None or dirs_dy is not None:
-        for name, d in (("dirs_dx", dirs_dx), ("dirs_dy", dirs_dy)):
-            if d is None:
-                raise ValueError(f"{name}: required by filter {filter!r} (given together with the other "
-                                 f"derivative): expected [B, H, W, 3] = [{Bd}, {H}, {W}, 3], got None")
-            check_float(name, d, 4, last=3, shape_doc=f"[B, H, W, 3] = [{Bd}, {H}, {W}, 3]")
-            check_same(name, d, "cube", base)
-            if tuple(d.shape[1:3]) != (H, W):
-                raise ValueError(f"{name}: expected shape [B, H, W, 3] = [{Bd}, {H}, {W}, 3] like dirs, "
-                                 f"got {describe(d)}")
-            derivs.append(d)
+    derivs = check_dirs_derivs(dirs_dx, dirs_dy, dirs, filter, mip, "cube", base)
     bias = check_bias(lod_bias, dirs, "dirs", base, "cube", dims="H, W")
     if isinstance(cube, CubeMipmap):
         _check_levels(cube)
@@ -412,6 +418,8 @@ def cubemap(
         parts = [t for t in (base, dirs, *derivs, bias) if isinstance(t, Tensor)]
         return sum(t.reshape(-1)[:0].reshape(B, C, H, W) for t in parts)
 
+    if _native_kernel(base, dirs, filter) is not None:
+        return _native_lookup(base if pyramid is None else pyramid, dirs, derivs, filter, bias, B)
     # Zero and non-finite directions read a safe direction (no NaN in any
     # backward, no gradient from them) and get their value put back at the end.
     # One sum and one max say whether there is any (no per-point masks then).
@@ -440,6 +448,143 @@ def cubemap(
         atlas = _atlas(base, g) if pyramid is None else pyramid.atlas(0, g)
         out = sample(atlas, _atlas_uv(face, uv, S, g), filter=filter, wrap="clamp")
     return out if clean else _put_back(out, ok, zero, B, H, W)
+
+
+# --------------------------------------------------------------------------
+# the native path (csrc/cube.cpp): front end and read in one pass each
+# --------------------------------------------------------------------------
+
+#: Filters the native path runs (the others take the torch path).
+_NATIVE = ("bilinear", "trilinear", "nearest-mip")
+
+
+def _native_kernel(base: Tensor, dirs: Tensor, filter: str):
+    """The native module where it serves this lookup (CPU, float32 / float64, one cube, a filter of
+    ``_NATIVE``, ``difftex.backend`` allowing it), else None."""
+    if filter not in _NATIVE or base.shape[0] != 1 or base.dtype not in (torch.float32, torch.float64):
+        return None
+    kernel = native.kernel(dirs)
+    return kernel if kernel is not None and hasattr(kernel, "cube_read") else None
+
+
+def _torch_front(dirs: Tensor, dx: Optional[Tensor], dy: Optional[Tensor], bias: Union[float, Tensor], S: int,
+                 L: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The torch reference of ``cube_front`` on flat [M, 3] inputs: (face, uv, level D). A zero or
+    non-finite direction reads +x with zero derivatives (its face is not -1 / -2 here, and not read)."""
+    good = (torch.isfinite(dirs).all(-1) & (dirs != 0).any(-1)).unsqueeze(-1)
+    dirs = torch.where(good, dirs, torch.tensor([1.0, 0.0, 0.0], dtype=dirs.dtype, device=dirs.device))
+    if dx is None:
+        face, uv = direction_to_cube(dirs)
+        return face, uv, torch.zeros_like(uv[:, 0])
+    dx, dy = torch.where(good, dx, 0.0), torch.where(good, dy, 0.0)
+    face, uv, uv_dx, uv_dy = direction_to_cube(dirs, dirs_dx=dx, dirs_dy=dy)
+    return face, uv, level(_log2_length(dirs, [dx, dy], face, uv, uv_dx, uv_dy, S), bias, L)
+
+
+class _NativeFront(torch.autograd.Function):
+    """dirs, dx, dy [M, 3] (dx, dy None: bilinear, D = 0), bias [M] (None: the number bias0) -> face [M]
+    (-1 / -2 for a zero / non-finite direction), face uv [M, 2], level D [M] of a pyramid of L levels, as
+    ``_torch_front``, in one native pass; the backward recomputes each point (no graph)."""
+
+    @staticmethod
+    def forward(ctx, dirs: Tensor, dx: Optional[Tensor], dy: Optional[Tensor], bias: Optional[Tensor], bias0: float,
+                S: int, L: int):
+        none = dirs.new_empty(0)
+        ctx.args = (bias0, S, L)
+        face, uv, D = native.load().cube_front(dirs, none if dx is None else dx, none if dy is None else dy,
+                                               none if bias is None else bias, bias0=bias0, S=S, levels=L,
+                                               band=EDGE_BAND)
+        ctx.save_for_backward(dirs, dx, dy, bias)
+        ctx.mark_non_differentiable(face)
+        return face, uv, D
+
+    @staticmethod
+    def backward(ctx, _gface, guv: Optional[Tensor], gD: Optional[Tensor]):
+        dirs, dx, dy, bias = ctx.saved_tensors
+        bias0, S, L = ctx.args
+        need = ctx.needs_input_grad
+        guv = torch.zeros_like(dirs[:, :2]) if guv is None else guv
+        if dx is None or gD is None:
+            gD = dirs.new_empty(0)
+        if torch.is_grad_enabled():  # double backward: the differentiable torch path
+            def recompute() -> Tensor:
+                _, uv, D = _torch_front(dirs, dx, dy, bias0 if bias is None else bias, S, L)
+                return torch.cat([uv, D.unsqueeze(-1)], -1)
+            grad = torch.cat([guv, gD.unsqueeze(-1) if gD.numel() else torch.zeros_like(guv[:, :1])], -1)
+            return (*native.double_backward(recompute, (dirs, dx, dy, bias), need[:4], grad), None, None, None)
+        none = dirs.new_empty(0)
+        gd, gx, gy, gb = native.load().cube_front_backward(
+            dirs, none if dx is None else dx, none if dy is None else dy, none if bias is None else bias,
+            bias0=bias0, S=S, levels=L, band=EDGE_BAND, guv=guv, gD=gD, need_derivs=need[1] or need[2],
+            need_bias=need[3])
+        return (gd if need[0] else None, gx if need[1] else None, gy if need[2] else None, gb if need[3] else None,
+                None, None, None)
+
+
+def _torch_read(levels: Sequence[Tensor], face: Tensor, uv: Tensor, D: Tensor, nearest: bool) -> Tensor:
+    """The torch reference of ``cube_read``: levels [1, 6, C, n_k, n_k], face [M] (-1: 0, -2: NaN, no
+    gradient), uv [M, 2], D [M] -> [C, M], each level read on its 1-texel gutter atlas, blended by
+    ``mip_blend``."""
+    ok = face >= 0
+    x = torch.cat([uv, torch.where(ok, face, 0).to(uv.dtype).unsqueeze(-1)], -1)
+
+    def read_one(k: int, xs: list[Tensor]) -> Tensor:
+        at = _atlas_uv(xs[0][:, 2], xs[0][:, :2], levels[k].shape[-1], 1)
+        return separable_sample(_atlas(levels[k], 1), at.unsqueeze(0), "linear", "clamp", "clamp")[0]
+
+    out = mip_blend(D, len(levels), [x], per_level(read_one), nearest=nearest)
+    return torch.where(ok, out, torch.where(face == -1, 0.0, float("nan")).to(out.dtype))
+
+
+class _NativeRead(torch.autograd.Function):
+    """``_torch_read`` in one native pass over the points: the taps read the faces and, past an edge, the
+    gutter through ``_ring_tables`` (no atlas is built); the backward scatters straight into the levels."""
+
+    @staticmethod
+    def forward(ctx, face: Tensor, uv: Tensor, D: Tensor, nearest: bool, *levels: Tensor) -> Tensor:
+        ctx.d_grad = ctx.needs_input_grad[2] and not nearest
+        ctx.nearest = nearest
+        ctx.save_for_backward(face, uv, D, *levels)
+        rings = [_ring_tables(lv.shape[-1]) for lv in levels]
+        ctx.rings = ([r[0] for r in rings], [r[1] for r in rings])
+        return native.load().cube_read([lv[0].contiguous() for lv in levels], *ctx.rings, face, uv, D, nearest,
+                                       ctx.d_grad)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        face, uv, D, *levels = ctx.saved_tensors
+        need = ctx.needs_input_grad
+        if torch.is_grad_enabled():
+            return native.double_backward(lambda: _torch_read(levels, face, uv, D, ctx.nearest),
+                                          (None, uv, D, None, *levels), need, grad)
+        need_levels = need[4:]
+        gl, guv, gD = native.load().cube_read_backward(
+            [lv[0].contiguous() for lv in levels], *ctx.rings, face, uv, D, grad, ctx.nearest, ctx.d_grad,
+            need_levels=any(need_levels), need_uv=need[1], need_D=need[2] and not ctx.nearest)
+        if need[2] and gD is None:
+            gD = torch.zeros_like(D)
+        return (None, guv if need[1] else None, gD if need[2] else None, None,
+                *native.level_grads(gl, need_levels, levels))
+
+
+def _native_lookup(cube: Union[Tensor, CubeMipmap], dirs: Tensor, derivs: list[Tensor], filter: str,
+                   bias: Union[float, Tensor], B: int) -> Tensor:
+    """``cubemap`` for the filters of ``_NATIVE`` on the native path: [B, C, H, W]. Zero and non-finite
+    directions are the kernel's to handle (0 / NaN, no gradient)."""
+    base = cube.levels[0] if isinstance(cube, CubeMipmap) else cube
+    C, S = base.shape[2], base.shape[-1]
+    _, H, W, _ = dirs.shape
+    flat = lambda t: t.expand(B, H, W, 3).reshape(-1, 3).contiguous()
+    if filter == "bilinear":
+        levels, L, dx, dy = [base], 1, None, None
+    else:
+        levels = (cube if isinstance(cube, CubeMipmap) else cube_mipmap(cube)).levels
+        L = min(len(levels), level_count(S, S))
+        levels, dx, dy = levels[:L], flat(derivs[0]), flat(derivs[1])
+    b = bias.expand(B, H, W).reshape(-1).contiguous() if isinstance(bias, Tensor) and dx is not None else None
+    face, uv, D = _NativeFront.apply(flat(dirs), dx, dy, b, bias if isinstance(bias, float) else 0.0, S, L)
+    out = _NativeRead.apply(face, uv, D, filter == "nearest-mip", *levels)
+    return out.view(C, B, H, W).transpose(0, 1)
 
 
 def _put_back(out: Tensor, ok: Tensor, zero: Tensor, B: int, H: int, W: int) -> Tensor:

@@ -1,0 +1,692 @@
+// The cube-map passes on the CPU (difftex/envmap/cube.py, its native path;
+// the torch path there stays the tested reference):
+//
+// * cube_front: per direction its face (OpenGL table 8.19, ties x over y
+//   over z: directions.py _face_coords), face uv, and for the mip filters
+//   the trilinear log2 length of the footprint in face texels, blended
+//   within EDGE_BAND of an edge with the same length measured on the
+//   neighbouring face (cube.py _edge_blend / _log2_length), so the level is
+//   continuous across edges. Its backward recomputes the point and applies
+//   the chain rule by hand (no graph, no temporaries per point).
+// * cube_read: the bilinear taps of one or two levels (trilinear,
+//   nearest-mip; bilinear is one level) read straight from the faces of
+//   each level: a tap past a face edge reads the 1-texel gutter of
+//   cube.py's atlas (_gutter_table: each gutter texel a weighted sum of up
+//   to 3 texels, the cube folded across the edge, 3-texel means beyond the
+//   corners), given here as one ring of slots around each face, so no
+//   atlas is built. The backward scatters the level gradients by bands of
+//   rows of the virtual atlas (bands.h): interior texels go straight to the
+//   faces' gradients, gutter texels to a small per-slot buffer, folded onto
+//   their source texels serially at the end (deterministic).
+#include "cube.h"
+
+#include "bands.h"
+#include "common.h"
+
+namespace difftex {
+
+namespace {
+
+// OpenGL 4.6 table 8.19 (mapping/common.py SC_AX ... MA_SGN).
+constexpr int kScAx[6] = {2, 2, 0, 0, 0, 0};
+constexpr double kScSg[6] = {-1, 1, 1, 1, 1, -1};
+constexpr int kTcAx[6] = {1, 1, 2, 2, 1, 1};
+constexpr double kTcSg[6] = {-1, -1, 1, -1, -1, -1};
+constexpr int kMaAx[6] = {0, 0, 1, 1, 2, 2};
+constexpr double kMaSg[6] = {1, -1, 1, -1, 1, -1};
+// mapping/common.py EPS: the floor of m_a.
+constexpr double kEps = 1e-9;
+constexpr double kLn2 = 0.69314718055994530942;
+
+DT_INLINE int face_of(const double* d) {
+  const double ax = std::abs(d[0]), ay = std::abs(d[1]), az = std::abs(d[2]);
+  const bool isx = ax >= ay && ax >= az, isy = !isx && ay >= az;
+  if (isx) return d[0] < 0 ? 1 : 0;
+  if (isy) return d[1] < 0 ? 3 : 2;
+  return d[2] < 0 ? 5 : 4;
+}
+
+// Gradients w.r.t. the face frame (s_c, t_c, m_a) scattered back to xyz.
+DT_INLINE void to_xyz(int f, double g1, double g2, double g3, double* out) {
+  out[kScAx[f]] += kScSg[f] * g1;
+  out[kTcAx[f]] += kTcSg[f] * g2;
+  out[kMaAx[f]] += kMaSg[f] * g3;
+}
+
+// log2 of the trilinear length (lod.py log2_length: max of the two derivative lengths, in texels; NaN or 0
+// -> -FAR, inf -> +FAR, no gradient there) of the footprint (x, y) of direction d projected on face f
+// (not necessarily d's own: m_a floored at EPS as cube.py _face_derivs). kGrad: adds gm * its gradient
+// w.r.t. d, x, y to gd, gx, gy.
+template <bool kGrad>
+DT_INLINE double measure(int f, const double* d, const double* x, const double* y, double S2, double gm, double* gd,
+                         double* gx, double* gy) {
+  const double p1 = kScSg[f] * d[kScAx[f]], p2 = kTcSg[f] * d[kTcAx[f]], p3r = kMaSg[f] * d[kMaAx[f]];
+  const double p3 = p3r < kEps ? kEps : p3r, i2 = 1.0 / (p3 * p3);
+  const double x1 = kScSg[f] * x[kScAx[f]], x2 = kTcSg[f] * x[kTcAx[f]], x3 = kMaSg[f] * x[kMaAx[f]];
+  const double y1 = kScSg[f] * y[kScAx[f]], y2 = kTcSg[f] * y[kTcAx[f]], y3 = kMaSg[f] * y[kMaAx[f]];
+  // d(face uv) = 0.5 (d s_c m_a - s_c d m_a) / m_a^2, per derivative.
+  const double ux = 0.5 * (x1 * p3 - p1 * x3) * i2, vx = 0.5 * (x2 * p3 - p2 * x3) * i2;
+  const double uy = 0.5 * (y1 * p3 - p1 * y3) * i2, vy = 0.5 * (y2 * p3 - p2 * y3) * i2;
+  const double qx = ux * ux + vx * vx, qy = uy * uy + vy * vy;
+  const double q = (std::isnan(qx) || std::isnan(qy)) ? std::numeric_limits<double>::quiet_NaN() : std::max(qx, qy);
+  const double len2 = q * S2;
+  if (!(len2 > 0 && len2 < std::numeric_limits<double>::infinity())) return len2 > 0 ? kFar : -kFar;
+  if (kGrad && gm != 0) {
+    const double G = gm * 0.5 / (q * kLn2);
+    // torch.maximum's backward: the larger one, half each at a tie.
+    const double lx = qx > qy ? 1.0 : (qx == qy ? 0.5 : 0.0), ly = 1.0 - lx;
+    double g1 = 0, g2 = 0, g3 = 0;
+    auto chain = [&](double lam, double u, double v, double w1, double w2, double w3, double* out) {
+      if (lam == 0) return;
+      const double a = G * lam * 2 * u, b = G * lam * 2 * v;  // d/du, d/dv
+      double o1 = a * 0.5 / p3, o2 = b * 0.5 / p3, o3 = -(a * p1 + b * p2) * 0.5 * i2;
+      if (out != nullptr) to_xyz(f, o1, o2, o3, out);
+      g1 += a * (-0.5 * w3 * i2);
+      g2 += b * (-0.5 * w3 * i2);
+      g3 += a * (0.5 * w1 * i2 - 2 * u / p3) + b * (0.5 * w2 * i2 - 2 * v / p3);
+    };
+    chain(lx, ux, vx, x1, x2, x3, gx);
+    chain(ly, uy, vy, y1, y2, y3, gy);
+    if (p3r < kEps) g3 = 0;  // clamp_min
+    to_xyz(f, g1, g2, g3, gd);
+  }
+  return 0.5 * std::log2(len2);
+}
+
+// One direction's front end; kGrad: recomputes it and adds the gradients of (guv, gl) to gd, gx, gy.
+template <bool kGrad>
+DT_INLINE void front_point(const double* d, const double* x, const double* y, double S2, double band, int64_t* face,
+                           double* uv, double* l, const double* guv, double gl, double* gd, double* gx, double* gy) {
+  const int f = face_of(d);
+  const double p1 = kScSg[f] * d[kScAx[f]], p2 = kTcSg[f] * d[kTcAx[f]], p3r = kMaSg[f] * d[kMaAx[f]];
+  const double p3 = p3r < kEps ? kEps : p3r;
+  const double a = p1 / p3, b = p2 / p3;
+  if (!kGrad) {
+    *face = f;
+    uv[0] = 0.5 * (a + 1.0);
+    uv[1] = 0.5 * (b + 1.0);
+  }
+  double ga = kGrad ? 0.5 * guv[0] : 0.0, gb = kGrad ? 0.5 * guv[1] : 0.0;
+  if (x != nullptr) {
+    const double own = measure<false>(f, d, x, y, S2, 0, nullptr, nullptr, nullptr);
+    double num = own, den = 1.0, w[2] = {0, 0}, m[2] = {0, 0}, c[2] = {a, b};
+    int nf[2] = {0, 0};
+    for (int axis = 0; axis < 2; ++axis) {
+      const double raw = 1.0 - (1.0 - std::abs(c[axis])) / band;
+      w[axis] = raw < 0 ? 0.0 : (raw > 1 ? 1.0 : raw);
+      if (!(w[axis] > 0)) continue;
+      const int ax = axis == 0 ? kScAx[f] : kTcAx[f];
+      const double sg = axis == 0 ? kScSg[f] : kTcSg[f];
+      nf[axis] = 2 * ax + (c[axis] * sg < 0 ? 1 : 0);
+      m[axis] = measure<false>(nf[axis], d, x, y, S2, 0, nullptr, nullptr, nullptr);
+      num += w[axis] * m[axis];
+      den += w[axis];
+    }
+    if (!kGrad) {
+      *l = num / den;
+    } else if (gl != 0) {
+      const double gnum = gl / den, gden = -gl * num / (den * den);
+      measure<true>(f, d, x, y, S2, gnum, gd, gx, gy);
+      for (int axis = 0; axis < 2; ++axis) {
+        if (!(w[axis] > 0)) continue;
+        measure<true>(nf[axis], d, x, y, S2, gnum * w[axis], gd, gx, gy);
+        const double raw = 1.0 - (1.0 - std::abs(c[axis])) / band;
+        if (raw <= 1.0) {  // clamp passes its gradient at the ends
+          const double gc = (gnum * m[axis] + gden) * (c[axis] > 0 ? 1.0 : (c[axis] < 0 ? -1.0 : 0.0)) / band;
+          (axis == 0 ? ga : gb) += gc;
+        }
+      }
+    }
+  }
+  if (kGrad) {
+    // a = s_c / m_a, b = t_c / m_a.
+    const double g3 = p3r < kEps ? 0.0 : -(ga * p1 + gb * p2) / (p3 * p3);
+    to_xyz(f, ga / p3, gb / p3, g3, gd);
+  }
+}
+
+void check_front(const torch::Tensor& dirs, const torch::Tensor& dx, const torch::Tensor& dy,
+                 const torch::Tensor& bias) {
+  TORCH_CHECK(dirs.dim() == 2 && dirs.size(1) == 3 && dirs.is_contiguous() && dirs.device().is_cpu(),
+              "cube_front: dirs must be contiguous CPU [M, 3]");
+  for (const auto* t : {&dx, &dy})
+    TORCH_CHECK(t->numel() == 0 || (t->sizes() == dirs.sizes() && t->is_contiguous() &&
+                                    t->scalar_type() == dirs.scalar_type()),
+                "cube_front: dx, dy must be contiguous [M, 3] like dirs (or both empty)");
+  TORCH_CHECK((dx.numel() == 0) == (dy.numel() == 0), "cube_front: give dx and dy together");
+  TORCH_CHECK(bias.numel() == 0 || (bias.dim() == 1 && bias.size(0) == dirs.size(0) && bias.is_contiguous() &&
+                                    bias.scalar_type() == dirs.scalar_type()),
+              "cube_front: bias must be contiguous [M] of dirs' dtype (or empty)");
+}
+
+// -1 for the zero vector, -2 for a non-finite one (cube.py: 0 and NaN in their pixels, no gradient), else 0.
+DT_INLINE int bad_direction(const double* d) {
+  if (!std::isfinite(d[0]) || !std::isfinite(d[1]) || !std::isfinite(d[2])) return -2;
+  return d[0] == 0 && d[1] == 0 && d[2] == 0 ? -1 : 0;
+}
+
+// lod.py level: D = clamp(nan_to_num(l + b), 0, top), derivative 1 where 0 < l + b <= top.
+DT_INLINE double level_of(double x, double top, bool* inside) {
+  if (std::isnan(x)) x = 0;
+  *inside = x > 0 && x <= top;
+  return x < 0 ? 0 : (x > top ? top : x);
+}
+
+}  // namespace
+
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> cube_front(torch::Tensor dirs, torch::Tensor dx,
+                                                                   torch::Tensor dy, torch::Tensor bias,
+                                                                   double bias0, int64_t S, int64_t levels,
+                                                                   double band) {
+  check_front(dirs, dx, dy, bias);
+  const int64_t M = dirs.size(0);
+  const bool derivs = dx.numel() > 0;
+  auto face = torch::empty({M}, dirs.options().dtype(torch::kInt64));
+  auto uv = torch::empty({M, 2}, dirs.options());
+  auto D = torch::empty({M}, dirs.options());
+  const double S2 = static_cast<double>(S) * static_cast<double>(S), top = static_cast<double>(levels - 1);
+  AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "cube_front", [&] {
+    const scalar_t *pd = dirs.data_ptr<scalar_t>(), *px = derivs ? dx.data_ptr<scalar_t>() : nullptr,
+                   *py = derivs ? dy.data_ptr<scalar_t>() : nullptr,
+                   *pb = bias.numel() ? bias.data_ptr<scalar_t>() : nullptr;
+    int64_t* pf = face.data_ptr<int64_t>();
+    scalar_t *puv = uv.data_ptr<scalar_t>(), *pD = D.data_ptr<scalar_t>();
+    at::parallel_for(0, M, 2048, [&](int64_t lo, int64_t hi) {
+      for (int64_t e = lo; e < hi; ++e) {
+        double d[3], x[3], y[3], u[2] = {0.5, 0.5}, len = 0;
+        for (int i = 0; i < 3; ++i) {
+          d[i] = pd[3 * e + i];
+          if (derivs) x[i] = px[3 * e + i], y[i] = py[3 * e + i];
+        }
+        const int bad = bad_direction(d);
+        if (bad) {
+          pf[e] = bad;
+        } else {
+          front_point<false>(d, derivs ? x : nullptr, derivs ? y : nullptr, S2, band, pf + e, u, &len, nullptr, 0,
+                             nullptr, nullptr, nullptr);
+        }
+        puv[2 * e] = static_cast<scalar_t>(u[0]);
+        puv[2 * e + 1] = static_cast<scalar_t>(u[1]);
+        bool inside;
+        // The length in the tensor's dtype first, as the torch path adds it to the bias.
+        pD[e] = derivs && !bad ? static_cast<scalar_t>(level_of(
+                                     static_cast<double>(static_cast<scalar_t>(len) +
+                                                         (pb ? pb[e] : static_cast<scalar_t>(bias0))),
+                                     top, &inside))
+                               : scalar_t(0);
+      }
+    });
+  });
+  return {face, uv, D};
+}
+
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> cube_front_backward(
+    torch::Tensor dirs, torch::Tensor dx, torch::Tensor dy, torch::Tensor bias, double bias0, int64_t S,
+    int64_t levels, double band, torch::Tensor guv, torch::Tensor gD, bool need_derivs, bool need_bias) {
+  check_front(dirs, dx, dy, bias);
+  const int64_t M = dirs.size(0);
+  const bool derivs = dx.numel() > 0, has_gD = gD.numel() > 0 && derivs;
+  guv = guv.contiguous();
+  gD = gD.contiguous();
+  TORCH_CHECK(guv.dim() == 2 && guv.size(0) == M && guv.size(1) == 2 && guv.scalar_type() == dirs.scalar_type(),
+              "cube_front_backward: guv must be [M, 2] of dirs' dtype");
+  TORCH_CHECK(gD.numel() == 0 || (gD.dim() == 1 && gD.size(0) == M && gD.scalar_type() == dirs.scalar_type()),
+              "cube_front_backward: gD must be [M] of dirs' dtype (or empty)");
+  need_derivs = need_derivs && has_gD;
+  need_bias = need_bias && has_gD;
+  auto gd = torch::empty({M, 3}, dirs.options());
+  torch::Tensor gx = need_derivs ? torch::empty({M, 3}, dirs.options()) : torch::Tensor();
+  torch::Tensor gy = need_derivs ? torch::empty({M, 3}, dirs.options()) : torch::Tensor();
+  torch::Tensor gb = need_bias ? torch::empty({M}, dirs.options()) : torch::Tensor();
+  const double S2 = static_cast<double>(S) * static_cast<double>(S), top = static_cast<double>(levels - 1);
+  AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "cube_front_backward", [&] {
+    const scalar_t *pd = dirs.data_ptr<scalar_t>(), *px = derivs ? dx.data_ptr<scalar_t>() : nullptr,
+                   *py = derivs ? dy.data_ptr<scalar_t>() : nullptr, *pguv = guv.data_ptr<scalar_t>(),
+                   *pgD = has_gD ? gD.data_ptr<scalar_t>() : nullptr,
+                   *pb = bias.numel() ? bias.data_ptr<scalar_t>() : nullptr;
+    scalar_t *pgd = gd.data_ptr<scalar_t>(), *pgx = need_derivs ? gx.data_ptr<scalar_t>() : nullptr,
+             *pgy = need_derivs ? gy.data_ptr<scalar_t>() : nullptr, *pgb = need_bias ? gb.data_ptr<scalar_t>() : nullptr;
+    at::parallel_for(0, M, 2048, [&](int64_t lo, int64_t hi) {
+      for (int64_t e = lo; e < hi; ++e) {
+        double d[3], x[3], y[3], g[3] = {0, 0, 0}, hx[3] = {0, 0, 0}, hy[3] = {0, 0, 0}, gl = 0;
+        for (int i = 0; i < 3; ++i) {
+          d[i] = pd[3 * e + i];
+          if (derivs) x[i] = px[3 * e + i], y[i] = py[3 * e + i];
+        }
+        const bool bad = bad_direction(d) != 0;
+        if (!bad) {
+          if (has_gD && pgD[e] != 0) {
+            // The level's gradient passes where it is not clamped: recompute the length to know.
+            double u[2], len = 0;
+            int64_t f;
+            front_point<false>(d, x, y, S2, band, &f, u, &len, nullptr, 0, nullptr, nullptr, nullptr);
+            bool inside;
+            level_of(static_cast<double>(static_cast<scalar_t>(len) + (pb ? pb[e] : static_cast<scalar_t>(bias0))),
+                     top, &inside);
+            gl = inside ? static_cast<double>(pgD[e]) : 0.0;
+          }
+          const double gu[2] = {static_cast<double>(pguv[2 * e]), static_cast<double>(pguv[2 * e + 1])};
+          front_point<true>(d, has_gD ? x : nullptr, has_gD ? y : nullptr, S2, band, nullptr, nullptr, nullptr, gu,
+                            gl, g, hx, hy);
+        }
+        for (int i = 0; i < 3; ++i) {
+          pgd[3 * e + i] = static_cast<scalar_t>(g[i]);
+          if (need_derivs) pgx[3 * e + i] = static_cast<scalar_t>(hx[i]), pgy[3 * e + i] = static_cast<scalar_t>(hy[i]);
+        }
+        if (need_bias) pgb[e] = static_cast<scalar_t>(gl);
+      }
+    });
+  });
+  return {gd, gx, gy, gb};
+}
+
+// ---------------------------------------------------------------- the read
+
+namespace {
+
+struct CubeLevel {
+  int64_t n, P, plane, fstride, ring;  // ring: slots per face, 4 P - 4
+  const int64_t* ri;
+  const double* rw;
+};
+
+// Slot of padded texel (y, x) on the ring of a face of P x P padded texels (cube.py _ring_tables).
+DT_INLINE int64_t ring_slot(int64_t y, int64_t x, int64_t P) {
+  if (y == 0) return x;
+  if (y == P - 1) return P + x;
+  if (x == 0) return 2 * P + (y - 1);
+  return 2 * P + (P - 2) + (y - 1);
+}
+
+// The (up to 3) texels that padded texel (f, y, x) of a level reads: offsets in [6, C, n, n] (channel 0),
+// weights, and its ring slot (-1 inside the face).
+struct Source {
+  int k;
+  int64_t slot;
+  int64_t a[3];
+  double w[3];
+};
+
+DT_INLINE void source_of(const CubeLevel& L, int64_t f, int64_t y, int64_t x, Source* s) {
+  if (y >= 1 && y <= L.n && x >= 1 && x <= L.n) {
+    s->k = 1;
+    s->slot = -1;
+    s->a[0] = f * L.fstride + (y - 1) * L.n + (x - 1);
+    s->w[0] = 1.0;
+    return;
+  }
+  const int64_t r = f * L.ring + ring_slot(y, x, L.P);
+  s->k = 3;
+  s->slot = r;
+  for (int q = 0; q < 3; ++q) {
+    const int64_t idx = L.ri[3 * r + q], fi = idx / L.plane;
+    s->a[q] = fi * L.fstride + (idx - fi * L.plane);
+    s->w[q] = L.rw[3 * r + q];
+  }
+}
+
+DT_INLINE int64_t clamp_i(double v, int64_t hi) {
+  return v < 0 ? 0 : (v > static_cast<double>(hi) ? hi : static_cast<int64_t>(v));
+}
+
+// One bilinear read of level L at face uv: the four padded texels and the fractions.
+struct Tap {
+  Source s[4];
+  double fx, fy;
+  int64_t row0;  // padded row of the upper taps
+};
+
+DT_INLINE void tap_of(const CubeLevel& L, int64_t f, double u, double v, Tap* t) {
+  const double x = u * static_cast<double>(L.n) + 0.5, y = v * static_cast<double>(L.n) + 0.5;
+  const double x0 = floor_capped(x), y0 = floor_capped(y);
+  t->fx = x - x0;
+  t->fy = y - y0;
+  const int64_t c0 = clamp_i(x0, L.P - 1), c1 = clamp_i(x0 + 1, L.P - 1);
+  const int64_t r0 = clamp_i(y0, L.P - 1), r1 = clamp_i(y0 + 1, L.P - 1);
+  t->row0 = r0;
+  source_of(L, f, r0, c0, &t->s[0]);
+  source_of(L, f, r0, c1, &t->s[1]);
+  source_of(L, f, r1, c0, &t->s[2]);
+  source_of(L, f, r1, c1, &t->s[3]);
+}
+
+// The fast path of a read: where all four taps lie inside the face (most points), their offset (the
+// upper left one, channel 0) and the fractions; false where a tap reads the gutter (then tap_of).
+DT_INLINE bool inner_tap(const CubeLevel& L, int64_t f, double u, double v, int64_t* base, double* fx, double* fy) {
+  const double n = static_cast<double>(L.n);
+  const double x = u * n + 0.5, y = v * n + 0.5;
+  const double x0 = floor_capped(x), y0 = floor_capped(y);
+  *fx = x - x0;
+  *fy = y - y0;
+  if (!(x0 >= 1 && x0 + 1 <= n && y0 >= 1 && y0 + 1 <= n)) return false;
+  *base = f * L.fstride + (static_cast<int64_t>(y0) - 1) * L.n + (static_cast<int64_t>(x0) - 1);
+  return true;
+}
+
+template <typename scalar_t>
+DT_INLINE scalar_t fetch(const Source& s, const scalar_t* p) {
+  if (s.k == 1) return p[s.a[0]];
+  return static_cast<scalar_t>(s.w[0]) * p[s.a[0]] + static_cast<scalar_t>(s.w[1]) * p[s.a[1]] +
+         static_cast<scalar_t>(s.w[2]) * p[s.a[2]];
+}
+
+std::vector<CubeLevel> cube_levels(const std::vector<torch::Tensor>& levels, const std::vector<torch::Tensor>& ri,
+                                   const std::vector<torch::Tensor>& rw, const torch::Tensor& face,
+                                   const torch::Tensor& uv, const torch::Tensor& D) {
+  TORCH_CHECK(!levels.empty() && levels.size() == ri.size() && levels.size() == rw.size(),
+              "cube_read: one ring table per level");
+  const int64_t M = uv.size(0);
+  TORCH_CHECK(uv.dim() == 2 && uv.size(1) == 2 && uv.is_contiguous(), "cube_read: uv must be contiguous [M, 2]");
+  TORCH_CHECK(face.dim() == 1 && face.size(0) == M && face.scalar_type() == torch::kInt64 && face.is_contiguous(),
+              "cube_read: face must be contiguous int64 [M]");
+  TORCH_CHECK(D.dim() == 1 && D.size(0) == M && D.scalar_type() == uv.scalar_type() && D.is_contiguous(),
+              "cube_read: D must be contiguous [M] of uv's dtype");
+  const int64_t C = levels[0].size(1);
+  std::vector<CubeLevel> out;
+  for (size_t k = 0; k < levels.size(); ++k) {
+    const auto& t = levels[k];
+    TORCH_CHECK(t.dim() == 4 && t.size(0) == 6 && t.size(1) == C && t.size(2) == t.size(3) && t.is_contiguous() &&
+                    t.scalar_type() == uv.scalar_type() && t.device().is_cpu(),
+                "cube_read: levels must be contiguous CPU [6, C, n, n] of uv's dtype");
+    const int64_t n = t.size(2), P = n + 2;
+    TORCH_CHECK(ri[k].dim() == 2 && ri[k].size(0) == 6 * (4 * P - 4) && ri[k].size(1) == 3 &&
+                    ri[k].scalar_type() == torch::kInt64 && ri[k].is_contiguous() && rw[k].sizes() == ri[k].sizes() &&
+                    rw[k].scalar_type() == torch::kFloat64 && rw[k].is_contiguous(),
+                "cube_read: ring tables must be contiguous [6 (4 P - 4), 3] int64 / float64");
+    out.push_back({n, P, n * n, C * n * n, 4 * P - 4, ri[k].data_ptr<int64_t>(), rw[k].data_ptr<double>()});
+  }
+  return out;
+}
+
+template <typename scalar_t, int CC>
+void read_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<CubeLevel>& L,
+                const std::vector<const scalar_t*>& lp, const int64_t* pf, const scalar_t* puv, const scalar_t* pd,
+                scalar_t* po, int64_t M, bool nearest, bool d_grad) {
+  const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
+  std::vector<scalar_t> heap(CC > 0 ? 0 : C);
+  scalar_t stack[CC > 0 ? CC : 1];
+  scalar_t* acc = CC > 0 ? stack : heap.data();
+  for (int64_t e = lo; e < hi; ++e) {
+    const double u = puv[2 * e], v = puv[2 * e + 1];
+    const int64_t f = pf[e];
+    if (!std::isfinite(u) || !std::isfinite(v) || f < 0 || f > 5) {
+      // face -1: a zero direction (0); else NaN (cube_front's codes).
+      const scalar_t fill = f == -1 ? scalar_t(0) : std::numeric_limits<scalar_t>::quiet_NaN();
+      for (int64_t c = 0; c < C; ++c) po[c * M + e] = fill;
+      continue;
+    }
+    const Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
+    for (int64_t c = 0; c < C; ++c) acc[c] = 0;
+    for (int j = 0; j < r.n; ++j) {
+      const CubeLevel& lv = L[r.k[j]];
+      const scalar_t* p = lp[r.k[j]];
+      const double wl = r.wt[j];
+      int64_t a;
+      double fx, fy;
+      if (inner_tap(lv, f, u, v, &a, &fx, &fy)) {
+        const scalar_t w[4] = {static_cast<scalar_t>(wl * (1 - fx) * (1 - fy)), static_cast<scalar_t>(wl * fx * (1 - fy)),
+                               static_cast<scalar_t>(wl * (1 - fx) * fy), static_cast<scalar_t>(wl * fx * fy)};
+        const int64_t n = lv.n;
+        for (int64_t c = 0; c < C; ++c) {
+          const scalar_t* pp = p + c * lv.plane + a;
+          acc[c] += w[0] * pp[0] + w[1] * pp[1] + w[2] * pp[n] + w[3] * pp[n + 1];
+        }
+        continue;
+      }
+      Tap t;
+      tap_of(lv, f, u, v, &t);
+      const scalar_t w[4] = {static_cast<scalar_t>(wl * (1 - t.fx) * (1 - t.fy)),
+                             static_cast<scalar_t>(wl * t.fx * (1 - t.fy)),
+                             static_cast<scalar_t>(wl * (1 - t.fx) * t.fy), static_cast<scalar_t>(wl * t.fx * t.fy)};
+      for (int64_t c = 0; c < C; ++c) {
+        const scalar_t* pp = p + c * lv.plane;
+        acc[c] += w[0] * fetch(t.s[0], pp) + w[1] * fetch(t.s[1], pp) + w[2] * fetch(t.s[2], pp) +
+                  w[3] * fetch(t.s[3], pp);
+      }
+    }
+    for (int64_t c = 0; c < C; ++c) po[c * M + e] = acc[c];
+  }
+}
+
+template <typename F>
+void by_channels(int64_t C, F&& f) {
+  switch (C) {
+    case 1: f(std::integral_constant<int, 1>()); break;
+    case 3: f(std::integral_constant<int, 3>()); break;
+    case 4: f(std::integral_constant<int, 4>()); break;
+    default: f(std::integral_constant<int, 0>());
+  }
+}
+
+}  // namespace
+
+torch::Tensor cube_read(std::vector<torch::Tensor> levels, std::vector<torch::Tensor> ring_idx,
+                        std::vector<torch::Tensor> ring_w, torch::Tensor face, torch::Tensor uv, torch::Tensor D,
+                        bool nearest, bool d_grad) {
+  auto L = cube_levels(levels, ring_idx, ring_w, face, uv, D);
+  const int64_t C = levels[0].size(1), M = uv.size(0);
+  auto out = torch::empty({C, M}, uv.options());
+  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "cube_read", [&] {
+    std::vector<const scalar_t*> lp;
+    for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
+    const int64_t* pf = face.data_ptr<int64_t>();
+    const scalar_t *puv = uv.data_ptr<scalar_t>(), *pd = D.data_ptr<scalar_t>();
+    scalar_t* po = out.data_ptr<scalar_t>();
+    at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
+      by_channels(C, [&](auto cc) {
+        read_range<scalar_t, decltype(cc)::value>(lo, hi, C, L, lp, pf, puv, pd, po, M, nearest, d_grad);
+      });
+    });
+  });
+  return out;
+}
+
+namespace {
+
+// The bands of the level-gradient scatter (bands.h), as taps.cpp's: rows of the virtual atlas of each level
+// (6 faces of P_k padded rows, stacked), bands the same fractions of every level's height, at scales nb0,
+// nb0 / 2, ... 2 (classes 2 s + parity), the last band (serial) for what no scale holds.
+struct CubeBands {
+  int64_t nb0, scales, serial;
+  std::vector<int64_t> offset;
+  std::vector<int32_t> classes;
+};
+
+CubeBands cube_bands(int64_t h0) {
+  CubeBands t;
+  t.nb0 = band_count(h0, 4);
+  t.scales = 0;
+  for (int64_t nb = t.nb0; nb >= 2; nb /= 2) {
+    t.offset.push_back(static_cast<int64_t>(t.classes.size()));
+    for (int64_t j = 0; j < nb; ++j) t.classes.push_back(static_cast<int32_t>(2 * t.scales + j % 2));
+    ++t.scales;
+  }
+  t.serial = static_cast<int64_t>(t.classes.size());
+  t.classes.push_back(static_cast<int32_t>(2 * t.scales));
+  return t;
+}
+
+DT_INLINE int32_t cube_key(const CubeBands& T, const std::vector<CubeLevel>& L, int64_t f, double u, double v,
+                           const Reads& r) {
+  if (!std::isfinite(u) || !std::isfinite(v) || f < 0 || f > 5) return -1;
+  int64_t a[2], b[2], h[2];
+  for (int j = 0; j < r.n; ++j) {
+    const CubeLevel& lv = L[r.k[j]];
+    const int64_t y0 = clamp_i(floor_capped(v * static_cast<double>(lv.n) + 0.5), lv.P - 1);
+    h[j] = 6 * lv.P;
+    // A margin row on each side (as taps.cpp).
+    a[j] = std::max<int64_t>(f * lv.P + y0 - 1, 0);
+    b[j] = std::min<int64_t>(f * lv.P + y0 + 2, h[j] - 1);
+  }
+  int64_t nb = T.nb0;
+  for (int64_t s = 0; s < T.scales; ++s, nb /= 2) {
+    int64_t band = std::numeric_limits<int64_t>::max();
+    for (int j = 0; j < r.n; ++j) band = std::min(band, a[j] * nb / h[j]);
+    bool fits = true;
+    for (int j = 0; j < r.n; ++j) fits = fits && (b[j] + 1) * nb <= (band + 2) * h[j];
+    if (fits) return static_cast<int32_t>(T.offset[s] + band);
+  }
+  return static_cast<int32_t>(T.serial);
+}
+
+template <typename scalar_t>
+struct CubeGrads {
+  std::vector<scalar_t*> gp, gr;  // per level: the faces' gradient [6, C, n, n], the ring slots' [R, C]
+  scalar_t *uv, *D;
+};
+
+template <typename scalar_t, int CC>
+DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<CubeLevel>& L,
+                              const std::vector<const scalar_t*>& lp, const int64_t* pf, const scalar_t* puv,
+                              const scalar_t* pd, const scalar_t* pg, const CubeGrads<scalar_t>& out, int64_t M,
+                              bool nearest, bool d_grad) {
+  const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
+  std::vector<scalar_t> heap(CC > 0 ? 0 : C);
+  scalar_t stack[CC > 0 ? CC : 1];
+  scalar_t* g = CC > 0 ? stack : heap.data();
+  const double u = puv[2 * e], v = puv[2 * e + 1];
+  const int64_t f = pf[e];
+  if (!std::isfinite(u) || !std::isfinite(v) || f < 0 || f > 5) return;
+  bool any = false;
+  for (int64_t c = 0; c < C; ++c) {
+    g[c] = pg[c * M + e];
+    any = any || g[c] != 0;
+  }
+  if (!any) return;
+  const Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
+  double du = 0, dv = 0, dD = 0;
+  for (int j = 0; j < r.n; ++j) {
+    const int64_t k = r.k[j];
+    const CubeLevel& lv = L[k];
+    int64_t a;
+    double dfx, dfy;
+    Tap t;
+    if (inner_tap(lv, f, u, v, &a, &dfx, &dfy)) {
+      // The four taps as sources of their own (no gutter).
+      const int64_t off[4] = {a, a + 1, a + lv.n, a + lv.n + 1};
+      for (int q = 0; q < 4; ++q) {
+        t.s[q].k = 1;
+        t.s[q].slot = -1;
+        t.s[q].a[0] = off[q];
+      }
+      t.fx = dfx;
+      t.fy = dfy;
+    } else {
+      tap_of(lv, f, u, v, &t);
+    }
+    const scalar_t fx = static_cast<scalar_t>(t.fx), fy = static_cast<scalar_t>(t.fy);
+    const scalar_t w[4] = {(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy};
+    const scalar_t wl = static_cast<scalar_t>(r.wt[j]);
+    const scalar_t* p = lp[k];
+    scalar_t *gk = out.gp[k], *gr = out.gr[k];
+    scalar_t sx = 0, sy = 0, sv = 0;
+    for (int64_t c = 0; c < C; ++c) {
+      const scalar_t* pp = p + c * lv.plane;
+      scalar_t tv[4];
+      for (int q = 0; q < 4; ++q) tv[q] = fetch(t.s[q], pp);
+      sx += g[c] * ((1 - fy) * (tv[1] - tv[0]) + fy * (tv[3] - tv[2]));
+      sy += g[c] * ((1 - fx) * (tv[2] - tv[0]) + fx * (tv[3] - tv[1]));
+      sv += g[c] * (w[0] * tv[0] + w[1] * tv[1] + w[2] * tv[2] + w[3] * tv[3]);
+      if (gk != nullptr) {
+        const scalar_t gw = g[c] * wl;
+        for (int q = 0; q < 4; ++q) {
+          if (t.s[q].slot < 0)
+            gk[t.s[q].a[0] + c * lv.plane] += gw * w[q];
+          else
+            gr[t.s[q].slot * C + c] += gw * w[q];
+        }
+      }
+    }
+    du += r.wt[j] * sx * static_cast<double>(lv.n);
+    dv += r.wt[j] * sy * static_cast<double>(lv.n);
+    dD += r.dwt[j] * sv;
+  }
+  if (out.uv) {
+    out.uv[2 * e] = static_cast<scalar_t>(du);
+    out.uv[2 * e + 1] = static_cast<scalar_t>(dv);
+  }
+  if (out.D) out.D[e] = static_cast<scalar_t>(dD);
+}
+
+}  // namespace
+
+std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_backward(
+    std::vector<torch::Tensor> levels, std::vector<torch::Tensor> ring_idx, std::vector<torch::Tensor> ring_w,
+    torch::Tensor face, torch::Tensor uv, torch::Tensor D, torch::Tensor grad, bool nearest, bool d_grad,
+    bool need_levels, bool need_uv, bool need_D) {
+  auto L = cube_levels(levels, ring_idx, ring_w, face, uv, D);
+  const int64_t K = static_cast<int64_t>(L.size()), C = levels[0].size(1), M = uv.size(0);
+  grad = grad.contiguous();
+  TORCH_CHECK(grad.dim() == 2 && grad.size(0) == C && grad.size(1) == M && grad.scalar_type() == uv.scalar_type(),
+              "cube_read: grad must be [C, M] of uv's dtype");
+  std::vector<torch::Tensor> gl(K);
+  torch::Tensor guv = need_uv ? torch::zeros({M, 2}, uv.options()) : torch::Tensor();
+  torch::Tensor gD = need_D ? torch::zeros({M}, uv.options()) : torch::Tensor();
+  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "cube_read_backward", [&] {
+    std::vector<const scalar_t*> lp;
+    for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
+    CubeGrads<scalar_t> out;
+    out.gp.assign(K, nullptr);
+    out.gr.assign(K, nullptr);
+    out.uv = need_uv ? guv.data_ptr<scalar_t>() : nullptr;
+    out.D = need_D ? gD.data_ptr<scalar_t>() : nullptr;
+    const int64_t* pf = face.data_ptr<int64_t>();
+    const scalar_t *puv = uv.data_ptr<scalar_t>(), *pd = D.data_ptr<scalar_t>(), *pg = grad.data_ptr<scalar_t>();
+    std::vector<int32_t> keys;
+    CubeBands bands;
+    std::vector<std::vector<scalar_t>> rings(K);
+    if (need_levels) {
+      bands = cube_bands(6 * L[0].P);
+      keys.resize(M);
+      const int64_t T = std::max<int64_t>(1, at::get_num_threads());
+      std::vector<std::vector<char>> read(T, std::vector<char>(K, 0));
+      at::parallel_for(0, M, 4096, [&](int64_t lo, int64_t hi) {
+        auto& rd = read[std::min<int64_t>(at::get_thread_num(), T - 1)];
+        for (int64_t e = lo; e < hi; ++e) {
+          const Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
+          keys[e] = cube_key(bands, L, pf[e], puv[2 * e], puv[2 * e + 1], r);
+          if (keys[e] >= 0)
+            for (int j = 0; j < r.n; ++j) rd[r.k[j]] = 1;
+        }
+      });
+      for (int64_t k = 0; k < K; ++k) {
+        bool any = false;
+        for (const auto& rd : read) any = any || rd[k];
+        if (!any) continue;
+        gl[k] = torch::zeros_like(levels[k]);
+        out.gp[k] = gl[k].template data_ptr<scalar_t>();
+        rings[k].assign(static_cast<size_t>(6 * L[k].ring * C), scalar_t(0));
+        out.gr[k] = rings[k].data();
+      }
+    }
+    by_channels(C, [&](auto cc) {
+      auto one = [&](int64_t e) {
+        backward_point<scalar_t, decltype(cc)::value>(e, C, L, lp, pf, puv, pd, pg, out, M, nearest, d_grad);
+      };
+      if (need_levels) {
+        run_banded(keys.data(), M, bands.classes, [&](const int64_t* idx, int64_t n) {
+          for (int64_t i = 0; i < n; ++i) one(idx[i]);
+        });
+      } else {
+        at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
+          for (int64_t e = lo; e < hi; ++e) one(e);
+        });
+      }
+    });
+    // The gutter slots' gradients onto the texels they were read from (the adjoint of the gutter), in order.
+    for (int64_t k = 0; k < K; ++k) {
+      if (out.gp[k] == nullptr) continue;
+      const CubeLevel& lv = L[k];
+      for (int64_t s = 0; s < 6 * lv.ring; ++s)
+        for (int q = 0; q < 3; ++q) {
+          const double w = lv.rw[3 * s + q];
+          if (w == 0) continue;
+          const int64_t idx = lv.ri[3 * s + q], fi = idx / lv.plane, a = fi * lv.fstride + (idx - fi * lv.plane);
+          for (int64_t c = 0; c < C; ++c) out.gp[k][a + c * lv.plane] += static_cast<scalar_t>(w) * rings[k][s * C + c];
+        }
+    }
+  });
+  return {gl, guv, gD};
+}
+
+}  // namespace difftex
