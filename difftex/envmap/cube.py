@@ -752,6 +752,11 @@ def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tenso
     P = H * W
     flat = lambda t: t.expand(B, H, W, *t.shape[3:]).reshape(B * P, *t.shape[3:])
     pts, dx, dy, fc = flat(uv), flat(uv_dx), flat(uv_dy), flat(face)
+    # A NaN derivative is a zero footprint (lod's rule: level 0, one tap) on every backend; the native
+    # footprint front end would spread the anisotropic taps along a NaN axis (NaN in the pixel).
+    nan = dx.isnan().any(-1) | dy.isnan().any(-1)
+    if bool(nan.any()):
+        dx, dy = torch.where(nan[:, None], 0.0, dx), torch.where(nan[:, None], 0.0, dy)
     if isinstance(bias, Tensor):
         bias = flat(bias) if bias.dim() == 3 else bias
     L = min(len(levels), level_count(S, S))
@@ -767,10 +772,21 @@ def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tenso
         point, tap, weight, count = _ewa_taps(dx, dy, D, S, max_aniso, flat(dirs), [flat(d) for d in dds])
     else:
         D, axis, count = taps(filter, dx, dy, bias, S, S, L, max_aniso, tolerance)
-        # The level, continuous across edges as trilinear's; the tap count and axis stay the own face's.
+        # The level, continuous across edges as trilinear's. The axis stays the own face's; within the band the
+        # tap count is the largest of the faces' (the same on both sides of an edge, so it does not jump there).
         sub = lambda t, idx: t.index_select(0, idx) if isinstance(t, Tensor) and t.dim() == 1 else t
-        D = _edge_blend(D, flat(dirs), [flat(d) for d in dds], fc, pts,
-                        lambda a, b, idx: taps(filter, a, b, sub(bias, idx), S, S, L, max_aniso, tolerance)[0])
+        counts = []
+
+        def measure(a: Tensor, b: Tensor, idx: Tensor) -> Tensor:
+            Dn, _, cn = taps(filter, a, b, sub(bias, idx), S, S, L, max_aniso, tolerance)
+            counts.append((idx, cn))
+            return Dn
+
+        D = _edge_blend(D, flat(dirs), [flat(d) for d in dds], fc, pts, measure)
+        if count is not None:
+            for idx, cn in counts:
+                if cn is not None:
+                    count = count.scatter_reduce(0, idx, cn, "amax")
     nearest = filter == "nearest-mip"
     if weight is not None:
         fc, tap = direction_to_cube(tap)

@@ -23,6 +23,8 @@
 #include "bands.h"
 #include "common.h"
 
+#include <cstring>
+
 namespace difftex {
 
 namespace {
@@ -37,6 +39,35 @@ constexpr double kMaSg[6] = {1, -1, 1, -1, 1, -1};
 // mapping/common.py EPS: the floor of m_a.
 constexpr double kEps = 1e-9;
 constexpr double kLn2 = 0.69314718055994530942;
+
+// log2 of a finite x > 0 to about 1e-16 (absolute), several times faster than std::log2 here: the
+// exponent from the bits, and the mantissa m in [sqrt(1/2), sqrt(2)) by the atanh series of
+// t = (m - 1) / (m + 1), |t| < 0.1716, to t^19 (the next term is below 1e-17).
+DT_INLINE double log2_fast(double x) {
+  if (!(x > 1e-300 && x < 1e300)) return std::log2(x);
+  uint64_t bits;
+  std::memcpy(&bits, &x, sizeof bits);
+  int64_t e = static_cast<int64_t>((bits >> 52) & 0x7ff) - 1023;
+  bits = (bits & 0x000fffffffffffffULL) | 0x3ff0000000000000ULL;
+  double m;
+  std::memcpy(&m, &bits, sizeof m);
+  if (m > 1.4142135623730951) {
+    m *= 0.5;
+    e += 1;
+  }
+  const double t = (m - 1.0) / (m + 1.0), t2 = t * t;
+  double p = 1.0 / 19;
+  p = p * t2 + 1.0 / 17;
+  p = p * t2 + 1.0 / 15;
+  p = p * t2 + 1.0 / 13;
+  p = p * t2 + 1.0 / 11;
+  p = p * t2 + 1.0 / 9;
+  p = p * t2 + 1.0 / 7;
+  p = p * t2 + 1.0 / 5;
+  p = p * t2 + 1.0 / 3;
+  p = p * t2 + 1.0;
+  return static_cast<double>(e) + (2.0 / kLn2) * t * p;
+}
 
 DT_INLINE int face_of(const double* d) {
   const double ax = std::abs(d[0]), ay = std::abs(d[1]), az = std::abs(d[2]);
@@ -55,48 +86,69 @@ DT_INLINE void to_xyz(int f, double g1, double g2, double g3, double* out) {
 
 // log2 of the trilinear length (lod.py log2_length: max of the two derivative lengths, in texels; NaN or 0
 // -> -FAR, inf -> +FAR, no gradient there) of the footprint (x, y) of direction d projected on face f
-// (not necessarily d's own: m_a floored at EPS as cube.py _face_derivs). kGrad: adds gm * its gradient
-// w.r.t. d, x, y to gd, gx, gy.
-template <bool kGrad>
-DT_INLINE double measure(int f, const double* d, const double* x, const double* y, double S2, double gm, double* gd,
-                         double* gx, double* gy) {
-  const double p1 = kScSg[f] * d[kScAx[f]], p2 = kTcSg[f] * d[kTcAx[f]], p3r = kMaSg[f] * d[kMaAx[f]];
-  const double p3 = p3r < kEps ? kEps : p3r, i2 = 1.0 / (p3 * p3);
-  const double x1 = kScSg[f] * x[kScAx[f]], x2 = kTcSg[f] * x[kTcAx[f]], x3 = kMaSg[f] * x[kMaAx[f]];
-  const double y1 = kScSg[f] * y[kScAx[f]], y2 = kTcSg[f] * y[kTcAx[f]], y3 = kMaSg[f] * y[kMaAx[f]];
+// (not necessarily d's own: m_a floored at EPS as cube.py _face_derivs), with what its gradient needs.
+struct Measure {
+  int f;
+  bool live;  // a finite, non-zero length (else m is +-FAR, constant)
+  double p1, p2, p3, p3r, i2, x1, x2, x3, y1, y2, y3, ux, vx, uy, vy, qx, qy, q, m;
+};
+
+template <bool kFloat>
+DT_INLINE void measure(int f, const double* d, const double* x, const double* y, double S2, Measure* s) {
+  s->f = f;
+  s->p1 = kScSg[f] * d[kScAx[f]];
+  s->p2 = kTcSg[f] * d[kTcAx[f]];
+  s->p3r = kMaSg[f] * d[kMaAx[f]];
+  s->p3 = s->p3r < kEps ? kEps : s->p3r;
+  s->i2 = 1.0 / (s->p3 * s->p3);
+  s->x1 = kScSg[f] * x[kScAx[f]], s->x2 = kTcSg[f] * x[kTcAx[f]], s->x3 = kMaSg[f] * x[kMaAx[f]];
+  s->y1 = kScSg[f] * y[kScAx[f]], s->y2 = kTcSg[f] * y[kTcAx[f]], s->y3 = kMaSg[f] * y[kMaAx[f]];
   // d(face uv) = 0.5 (d s_c m_a - s_c d m_a) / m_a^2, per derivative.
-  const double ux = 0.5 * (x1 * p3 - p1 * x3) * i2, vx = 0.5 * (x2 * p3 - p2 * x3) * i2;
-  const double uy = 0.5 * (y1 * p3 - p1 * y3) * i2, vy = 0.5 * (y2 * p3 - p2 * y3) * i2;
-  const double qx = ux * ux + vx * vx, qy = uy * uy + vy * vy;
-  const double q = (std::isnan(qx) || std::isnan(qy)) ? std::numeric_limits<double>::quiet_NaN() : std::max(qx, qy);
-  const double len2 = q * S2;
-  if (!(len2 > 0 && len2 < std::numeric_limits<double>::infinity())) return len2 > 0 ? kFar : -kFar;
-  if (kGrad && gm != 0) {
-    const double G = gm * 0.5 / (q * kLn2);
-    // torch.maximum's backward: the larger one, half each at a tie.
-    const double lx = qx > qy ? 1.0 : (qx == qy ? 0.5 : 0.0), ly = 1.0 - lx;
-    double g1 = 0, g2 = 0, g3 = 0;
-    auto chain = [&](double lam, double u, double v, double w1, double w2, double w3, double* out) {
-      if (lam == 0) return;
-      const double a = G * lam * 2 * u, b = G * lam * 2 * v;  // d/du, d/dv
-      double o1 = a * 0.5 / p3, o2 = b * 0.5 / p3, o3 = -(a * p1 + b * p2) * 0.5 * i2;
-      if (out != nullptr) to_xyz(f, o1, o2, o3, out);
-      g1 += a * (-0.5 * w3 * i2);
-      g2 += b * (-0.5 * w3 * i2);
-      g3 += a * (0.5 * w1 * i2 - 2 * u / p3) + b * (0.5 * w2 * i2 - 2 * v / p3);
-    };
-    chain(lx, ux, vx, x1, x2, x3, gx);
-    chain(ly, uy, vy, y1, y2, y3, gy);
-    if (p3r < kEps) g3 = 0;  // clamp_min
-    to_xyz(f, g1, g2, g3, gd);
-  }
-  return 0.5 * std::log2(len2);
+  s->ux = 0.5 * (s->x1 * s->p3 - s->p1 * s->x3) * s->i2, s->vx = 0.5 * (s->x2 * s->p3 - s->p2 * s->x3) * s->i2;
+  s->uy = 0.5 * (s->y1 * s->p3 - s->p1 * s->y3) * s->i2, s->vy = 0.5 * (s->y2 * s->p3 - s->p2 * s->y3) * s->i2;
+  s->qx = s->ux * s->ux + s->vx * s->vx;
+  s->qy = s->uy * s->uy + s->vy * s->vy;
+  s->q = (std::isnan(s->qx) || std::isnan(s->qy)) ? std::numeric_limits<double>::quiet_NaN() : std::max(s->qx, s->qy);
+  const double len2 = s->q * S2;
+  s->live = len2 > 0 && len2 < std::numeric_limits<double>::infinity();
+  s->m = s->live ? 0.5 * log2_fast(len2) : (len2 > 0 ? kFar : -kFar);
 }
 
-// One direction's front end; kGrad: recomputes it and adds the gradients of (guv, gl) to gd, gx, gy.
-template <bool kGrad>
-DT_INLINE void front_point(const double* d, const double* x, const double* y, double S2, double band, int64_t* face,
-                           double* uv, double* l, const double* guv, double gl, double* gd, double* gx, double* gy) {
+// Adds gm * d(measure)/d(d, x, y) to gd, gx, gy.
+DT_INLINE void measure_grad(const Measure& s, double gm, double* gd, double* gx, double* gy) {
+  if (!s.live || gm == 0) return;
+  const double G = gm * 0.5 / (s.q * kLn2);
+  // torch.maximum's backward: the larger one, half each at a tie.
+  const double lx = s.qx > s.qy ? 1.0 : (s.qx == s.qy ? 0.5 : 0.0), ly = 1.0 - lx;
+  double g1 = 0, g2 = 0, g3 = 0;
+  auto chain = [&](double lam, double u, double v, double w1, double w2, double w3, double* out) {
+    if (lam == 0) return;
+    const double a = G * lam * 2 * u, b = G * lam * 2 * v;  // d/du, d/dv
+    to_xyz(s.f, a * 0.5 / s.p3, b * 0.5 / s.p3, -(a * s.p1 + b * s.p2) * 0.5 * s.i2, out);
+    g1 += a * (-0.5 * w3 * s.i2);
+    g2 += b * (-0.5 * w3 * s.i2);
+    g3 += a * (0.5 * w1 * s.i2 - 2 * u / s.p3) + b * (0.5 * w2 * s.i2 - 2 * v / s.p3);
+  };
+  chain(lx, s.ux, s.vx, s.x1, s.x2, s.x3, gx);
+  chain(ly, s.uy, s.vy, s.y1, s.y2, s.y3, gy);
+  if (s.p3r < kEps) g3 = 0;  // clamp_min
+  to_xyz(s.f, g1, g2, g3, gd);
+}
+
+// lod.py level: D = clamp(nan_to_num(l + b), 0, top), derivative 1 where 0 < l + b <= top.
+DT_INLINE double level_of(double x, double top, bool* inside) {
+  if (std::isnan(x)) x = 0;
+  *inside = x > 0 && x <= top;
+  return x < 0 ? 0 : (x > top ? top : x);
+}
+
+// One direction's front end: face, uv and (x, y given) log2 L. kGrad: recomputes it and adds the gradients
+// of guv and gD (through D = level(l + bias), the level's slope known only here) to gd, gx, gy, and
+// returns the bias's; the forward returns 0.
+template <bool kGrad, bool kFloat>
+DT_INLINE double front_point(const double* d, const double* x, const double* y, double S2, double band,
+                             int64_t* face, double* uv, double* l, const double* guv, double gD, double bias,
+                             double top, double* gd, double* gx, double* gy) {
   const int f = face_of(d);
   const double p1 = kScSg[f] * d[kScAx[f]], p2 = kTcSg[f] * d[kTcAx[f]], p3r = kMaSg[f] * d[kMaAx[f]];
   const double p3 = p3r < kEps ? kEps : p3r;
@@ -106,34 +158,41 @@ DT_INLINE void front_point(const double* d, const double* x, const double* y, do
     uv[0] = 0.5 * (a + 1.0);
     uv[1] = 0.5 * (b + 1.0);
   }
-  double ga = kGrad ? 0.5 * guv[0] : 0.0, gb = kGrad ? 0.5 * guv[1] : 0.0;
-  if (x != nullptr) {
-    const double own = measure<false>(f, d, x, y, S2, 0, nullptr, nullptr, nullptr);
-    double num = own, den = 1.0, w[2] = {0, 0}, m[2] = {0, 0}, c[2] = {a, b};
-    int nf[2] = {0, 0};
+  double ga = kGrad ? 0.5 * guv[0] : 0.0, gb = kGrad ? 0.5 * guv[1] : 0.0, gl = 0.0;
+  if (x != nullptr && (!kGrad || gD != 0)) {
+    Measure own, nb[2];
+    measure<kFloat>(f, d, x, y, S2, &own);
+    double num = own.m, den = 1.0, w[2] = {0, 0};
+    const double c[2] = {a, b};
     for (int axis = 0; axis < 2; ++axis) {
       const double raw = 1.0 - (1.0 - std::abs(c[axis])) / band;
       w[axis] = raw < 0 ? 0.0 : (raw > 1 ? 1.0 : raw);
       if (!(w[axis] > 0)) continue;
       const int ax = axis == 0 ? kScAx[f] : kTcAx[f];
       const double sg = axis == 0 ? kScSg[f] : kTcSg[f];
-      nf[axis] = 2 * ax + (c[axis] * sg < 0 ? 1 : 0);
-      m[axis] = measure<false>(nf[axis], d, x, y, S2, 0, nullptr, nullptr, nullptr);
-      num += w[axis] * m[axis];
+      measure<kFloat>(2 * ax + (c[axis] * sg < 0 ? 1 : 0), d, x, y, S2, &nb[axis]);
+      num += w[axis] * nb[axis].m;
       den += w[axis];
     }
     if (!kGrad) {
       *l = num / den;
-    } else if (gl != 0) {
-      const double gnum = gl / den, gden = -gl * num / (den * den);
-      measure<true>(f, d, x, y, S2, gnum, gd, gx, gy);
-      for (int axis = 0; axis < 2; ++axis) {
-        if (!(w[axis] > 0)) continue;
-        measure<true>(nf[axis], d, x, y, S2, gnum * w[axis], gd, gx, gy);
-        const double raw = 1.0 - (1.0 - std::abs(c[axis])) / band;
-        if (raw <= 1.0) {  // clamp passes its gradient at the ends
-          const double gc = (gnum * m[axis] + gden) * (c[axis] > 0 ? 1.0 : (c[axis] < 0 ? -1.0 : 0.0)) / band;
-          (axis == 0 ? ga : gb) += gc;
+    } else {
+      bool inside;
+      // The length rounded to the inputs' dtype before the bias is added, as the torch path does.
+      level_of(kFloat ? static_cast<double>(static_cast<float>(num / den) + static_cast<float>(bias)) : num / den + bias,
+               top, &inside);
+      gl = inside ? gD : 0.0;
+      if (gl != 0) {
+        const double gnum = gl / den, gden = -gl * num / (den * den);
+        measure_grad(own, gnum, gd, gx, gy);
+        for (int axis = 0; axis < 2; ++axis) {
+          if (!(w[axis] > 0)) continue;
+          measure_grad(nb[axis], gnum * w[axis], gd, gx, gy);
+          const double raw = 1.0 - (1.0 - std::abs(c[axis])) / band;
+          if (raw <= 1.0) {  // clamp passes its gradient at the ends
+            const double gc = (gnum * nb[axis].m + gden) * (c[axis] > 0 ? 1.0 : (c[axis] < 0 ? -1.0 : 0.0)) / band;
+            (axis == 0 ? ga : gb) += gc;
+          }
         }
       }
     }
@@ -143,6 +202,7 @@ DT_INLINE void front_point(const double* d, const double* x, const double* y, do
     const double g3 = p3r < kEps ? 0.0 : -(ga * p1 + gb * p2) / (p3 * p3);
     to_xyz(f, ga / p3, gb / p3, g3, gd);
   }
+  return gl;
 }
 
 void check_front(const torch::Tensor& dirs, const torch::Tensor& dx, const torch::Tensor& dy,
@@ -163,13 +223,6 @@ void check_front(const torch::Tensor& dirs, const torch::Tensor& dx, const torch
 DT_INLINE int bad_direction(const double* d) {
   if (!std::isfinite(d[0]) || !std::isfinite(d[1]) || !std::isfinite(d[2])) return -2;
   return d[0] == 0 && d[1] == 0 && d[2] == 0 ? -1 : 0;
-}
-
-// lod.py level: D = clamp(nan_to_num(l + b), 0, top), derivative 1 where 0 < l + b <= top.
-DT_INLINE double level_of(double x, double top, bool* inside) {
-  if (std::isnan(x)) x = 0;
-  *inside = x > 0 && x <= top;
-  return x < 0 ? 0 : (x > top ? top : x);
 }
 
 }  // namespace
@@ -202,8 +255,9 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> cube_front(torch::Tensor
         if (bad) {
           pf[e] = bad;
         } else {
-          front_point<false>(d, derivs ? x : nullptr, derivs ? y : nullptr, S2, band, pf + e, u, &len, nullptr, 0,
-                             nullptr, nullptr, nullptr);
+          front_point<false, std::is_same<scalar_t, float>::value>(d, derivs ? x : nullptr, derivs ? y : nullptr, S2,
+                                                                    band, pf + e, u, &len, nullptr, 0, 0, top,
+                                                                    nullptr, nullptr, nullptr);
         }
         puv[2 * e] = static_cast<scalar_t>(u[0]);
         puv[2 * e + 1] = static_cast<scalar_t>(u[1]);
@@ -255,19 +309,11 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> cube_fron
         }
         const bool bad = bad_direction(d) != 0;
         if (!bad) {
-          if (has_gD && pgD[e] != 0) {
-            // The level's gradient passes where it is not clamped: recompute the length to know.
-            double u[2], len = 0;
-            int64_t f;
-            front_point<false>(d, x, y, S2, band, &f, u, &len, nullptr, 0, nullptr, nullptr, nullptr);
-            bool inside;
-            level_of(static_cast<double>(static_cast<scalar_t>(len) + (pb ? pb[e] : static_cast<scalar_t>(bias0))),
-                     top, &inside);
-            gl = inside ? static_cast<double>(pgD[e]) : 0.0;
-          }
           const double gu[2] = {static_cast<double>(pguv[2 * e]), static_cast<double>(pguv[2 * e + 1])};
-          front_point<true>(d, has_gD ? x : nullptr, has_gD ? y : nullptr, S2, band, nullptr, nullptr, nullptr, gu,
-                            gl, g, hx, hy);
+          const double b = static_cast<double>(pb ? pb[e] : static_cast<scalar_t>(bias0));
+          gl = front_point<true, std::is_same<scalar_t, float>::value>(
+              d, has_gD ? x : nullptr, has_gD ? y : nullptr, S2, band, nullptr, nullptr, nullptr, gu,
+              has_gD ? static_cast<double>(pgD[e]) : 0.0, b, top, g, hx, hy);
         }
         for (int i = 0; i < 3; ++i) {
           pgd[3 * e + i] = static_cast<scalar_t>(g[i]);
@@ -562,18 +608,33 @@ DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<CubeLev
     double dfx, dfy;
     Tap t;
     if (inner_tap(lv, f, u, v, &a, &dfx, &dfy)) {
-      // The four taps as sources of their own (no gutter).
-      const int64_t off[4] = {a, a + 1, a + lv.n, a + lv.n + 1};
-      for (int q = 0; q < 4; ++q) {
-        t.s[q].k = 1;
-        t.s[q].slot = -1;
-        t.s[q].a[0] = off[q];
+      // The fast path: four texels of the face, scattered straight into its gradient.
+      const scalar_t fx = static_cast<scalar_t>(dfx), fy = static_cast<scalar_t>(dfy);
+      const scalar_t w[4] = {(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy};
+      const scalar_t wl = static_cast<scalar_t>(r.wt[j]);
+      const int64_t n = lv.n;
+      scalar_t sx = 0, sy = 0, sv = 0;
+      for (int64_t c = 0; c < C; ++c) {
+        const scalar_t* pp = lp[k] + c * lv.plane + a;
+        const scalar_t t0 = pp[0], t1 = pp[1], t2 = pp[n], t3 = pp[n + 1];
+        sx += g[c] * ((1 - fy) * (t1 - t0) + fy * (t3 - t2));
+        sy += g[c] * ((1 - fx) * (t2 - t0) + fx * (t3 - t1));
+        sv += g[c] * (w[0] * t0 + w[1] * t1 + w[2] * t2 + w[3] * t3);
+        if (out.gp[k] != nullptr) {
+          scalar_t* gq = out.gp[k] + c * lv.plane + a;
+          const scalar_t gw = g[c] * wl;
+          gq[0] += gw * w[0];
+          gq[1] += gw * w[1];
+          gq[n] += gw * w[2];
+          gq[n + 1] += gw * w[3];
+        }
       }
-      t.fx = dfx;
-      t.fy = dfy;
-    } else {
-      tap_of(lv, f, u, v, &t);
+      du += r.wt[j] * sx * static_cast<double>(n);
+      dv += r.wt[j] * sy * static_cast<double>(n);
+      dD += r.dwt[j] * sv;
+      continue;
     }
+    tap_of(lv, f, u, v, &t);
     const scalar_t fx = static_cast<scalar_t>(t.fx), fy = static_cast<scalar_t>(t.fy);
     const scalar_t w[4] = {(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy};
     const scalar_t wl = static_cast<scalar_t>(r.wt[j]);
