@@ -469,8 +469,8 @@ def _native_kernel(base: Tensor, dirs: Tensor, filter: str):
 
 def _torch_front(dirs: Tensor, dx: Optional[Tensor], dy: Optional[Tensor], bias: Union[float, Tensor], S: int,
                  L: int) -> tuple[Tensor, Tensor, Tensor]:
-    """The torch reference of ``cube_front`` on flat [M, 3] inputs: (face, uv, level D). A zero or
-    non-finite direction reads +x with zero derivatives (its face is not -1 / -2 here, and not read)."""
+    """The torch reference of ``cube_front`` on flat [M, 3] inputs: (face, uv, level D; zeros without dx, dy).
+    A zero or non-finite direction reads +x with zero derivatives (its face is not -1 / -2 here, and not read)."""
     good = (torch.isfinite(dirs).all(-1) & (dirs != 0).any(-1)).unsqueeze(-1)
     dirs = torch.where(good, dirs, torch.tensor([1.0, 0.0, 0.0], dtype=dirs.dtype, device=dirs.device))
     if dx is None:
@@ -482,9 +482,9 @@ def _torch_front(dirs: Tensor, dx: Optional[Tensor], dy: Optional[Tensor], bias:
 
 
 class _NativeFront(torch.autograd.Function):
-    """dirs, dx, dy [M, 3] (dx, dy None: bilinear, D = 0), bias [M] (None: the number bias0) -> face [M]
-    (-1 / -2 for a zero / non-finite direction), face uv [M, 2], level D [M] of a pyramid of L levels, as
-    ``_torch_front``, in one native pass; the backward recomputes each point (no graph)."""
+    """dirs, dx, dy [M, 3] (dx, dy None: bilinear, D empty), bias [M] (None: the number bias0) -> face [M]
+    int8 (-1 / -2 for a zero / non-finite direction), face uv [M, 2], level D [M] of a pyramid of L levels,
+    as ``_torch_front``, in one native pass; the backward recomputes each point (no graph)."""
 
     @staticmethod
     def forward(ctx, dirs: Tensor, dx: Optional[Tensor], dy: Optional[Tensor], bias: Optional[Tensor], bias0: float,
@@ -526,6 +526,7 @@ def _torch_read(levels: Sequence[Tensor], face: Tensor, uv: Tensor, D: Tensor, n
     gradient), uv [M, 2], D [M] -> [C, M], each level read on its 1-texel gutter atlas, blended by
     ``mip_blend``."""
     ok = face >= 0
+    D = D if D.numel() else uv.new_zeros(uv.shape[0])
     x = torch.cat([uv, torch.where(ok, face, 0).to(uv.dtype).unsqueeze(-1)], -1)
 
     def read_one(k: int, xs: list[Tensor]) -> Tensor:
@@ -537,8 +538,9 @@ def _torch_read(levels: Sequence[Tensor], face: Tensor, uv: Tensor, D: Tensor, n
 
 
 class _NativeRead(torch.autograd.Function):
-    """``_torch_read`` in one native pass over the points: the taps read the faces and, past an edge, the
-    gutter through ``_ring_tables`` (no atlas is built); the backward scatters straight into the levels."""
+    """``_torch_read`` in one native pass over the points (D empty: level 0): the taps read the faces and,
+    past an edge, the gutter through ``_ring_tables`` (no atlas is built); the backward scatters straight
+    into the levels."""
 
     @staticmethod
     def forward(ctx, face: Tensor, uv: Tensor, D: Tensor, nearest: bool, *levels: Tensor) -> Tensor:
@@ -582,8 +584,18 @@ def _native_lookup(cube: Union[Tensor, CubeMipmap], dirs: Tensor, derivs: list[T
         L = min(len(levels), level_count(S, S))
         levels, dx, dy = levels[:L], flat(derivs[0]), flat(derivs[1])
     b = bias.expand(B, H, W).reshape(-1).contiguous() if isinstance(bias, Tensor) and dx is not None else None
-    face, uv, D = _NativeFront.apply(flat(dirs), dx, dy, b, bias if isinstance(bias, float) else 0.0, S, L)
-    out = _NativeRead.apply(face, uv, D, filter == "nearest-mip", *levels)
+    args = (flat(dirs), dx, dy, b, bias if isinstance(bias, float) else 0.0, S, L)
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (*args[:4], *levels)):
+        face, uv, D = _NativeFront.apply(*args)
+        out = _NativeRead.apply(face, uv, D, filter == "nearest-mip", *levels)
+    else:
+        # No graph: front end and read in one pass (no face / uv / level arrays in between).
+        none = base.new_empty(0)
+        rings = [_ring_tables(lv.shape[-1]) for lv in levels]
+        out = native.load().cube_lookup([lv[0].contiguous() for lv in levels], [r[0] for r in rings],
+                                        [r[1] for r in rings], args[0], none if dx is None else dx,
+                                        none if dy is None else dy, none if b is None else b.detach(), bias0=args[4],
+                                        S=S, band=EDGE_BAND, nearest=filter == "nearest-mip")
     return out.view(C, B, H, W).transpose(0, 1)
 
 

@@ -40,33 +40,32 @@ constexpr double kMaSg[6] = {1, -1, 1, -1, 1, -1};
 constexpr double kEps = 1e-9;
 constexpr double kLn2 = 0.69314718055994530942;
 
-// log2 of a finite x > 0 to about 1e-16 (absolute), several times faster than std::log2 here: the
-// exponent from the bits, and the mantissa m in [sqrt(1/2), sqrt(2)) by the atanh series of
-// t = (m - 1) / (m + 1), |t| < 0.1716, to t^19 (the next term is below 1e-17).
+// log2 of a finite x > 0, faster than std::log2 here: the exponent from the bits, and the mantissa m in
+// [sqrt(1/2), sqrt(2)) by the atanh series of t = (m - 1) / (m + 1), |t| < 0.1716, evaluated by Estrin's
+// scheme (a short dependency chain: the front end is latency-bound). kFloat (float32 inputs): to t^9,
+// absolute error below 1e-8 (the torch path computes in float32); else to t^19, below 1e-16.
+template <bool kFloat>
 DT_INLINE double log2_fast(double x) {
   if (!(x > 1e-300 && x < 1e300)) return std::log2(x);
   uint64_t bits;
   std::memcpy(&bits, &x, sizeof bits);
-  int64_t e = static_cast<int64_t>((bits >> 52) & 0x7ff) - 1023;
+  const int64_t e = static_cast<int64_t>((bits >> 52) & 0x7ff) - 1023;
   bits = (bits & 0x000fffffffffffffULL) | 0x3ff0000000000000ULL;
   double m;
   std::memcpy(&m, &bits, sizeof m);
-  if (m > 1.4142135623730951) {
-    m *= 0.5;
-    e += 1;
+  const bool high = m > 1.4142135623730951;
+  m = high ? 0.5 * m : m;
+  const double t = (m - 1.0) / (m + 1.0), z = t * t, z2 = z * z, z4 = z2 * z2;
+  double p;
+  if (kFloat) {
+    p = (1.0 + z * (1.0 / 3)) + z2 * ((1.0 / 5) + z * (1.0 / 7)) + z4 * (1.0 / 9);
+  } else {
+    const double z8 = z4 * z4;
+    const double q0 = 1.0 + z * (1.0 / 3), q1 = 1.0 / 5 + z * (1.0 / 7), q2 = 1.0 / 9 + z * (1.0 / 11);
+    const double q3 = 1.0 / 13 + z * (1.0 / 15), q4 = 1.0 / 17 + z * (1.0 / 19);
+    p = (q0 + z2 * q1) + z4 * (q2 + z2 * q3) + z8 * q4;
   }
-  const double t = (m - 1.0) / (m + 1.0), t2 = t * t;
-  double p = 1.0 / 19;
-  p = p * t2 + 1.0 / 17;
-  p = p * t2 + 1.0 / 15;
-  p = p * t2 + 1.0 / 13;
-  p = p * t2 + 1.0 / 11;
-  p = p * t2 + 1.0 / 9;
-  p = p * t2 + 1.0 / 7;
-  p = p * t2 + 1.0 / 5;
-  p = p * t2 + 1.0 / 3;
-  p = p * t2 + 1.0;
-  return static_cast<double>(e) + (2.0 / kLn2) * t * p;
+  return static_cast<double>(e + (high ? 1 : 0)) + (2.0 / kLn2) * t * p;
 }
 
 DT_INLINE int face_of(const double* d) {
@@ -111,7 +110,7 @@ DT_INLINE void measure(int f, const double* d, const double* x, const double* y,
   s->q = (std::isnan(s->qx) || std::isnan(s->qy)) ? std::numeric_limits<double>::quiet_NaN() : std::max(s->qx, s->qy);
   const double len2 = s->q * S2;
   s->live = len2 > 0 && len2 < std::numeric_limits<double>::infinity();
-  s->m = s->live ? 0.5 * log2_fast(len2) : (len2 > 0 ? kFar : -kFar);
+  s->m = s->live ? 0.5 * log2_fast<kFloat>(len2) : (len2 > 0 ? kFar : -kFar);
 }
 
 // Adds gm * d(measure)/d(d, x, y) to gd, gx, gy.
@@ -147,14 +146,14 @@ DT_INLINE double level_of(double x, double top, bool* inside) {
 // returns the bias's; the forward returns 0.
 template <bool kGrad, bool kFloat>
 DT_INLINE double front_point(const double* d, const double* x, const double* y, double S2, double band,
-                             int64_t* face, double* uv, double* l, const double* guv, double gD, double bias,
+                             int8_t* face, double* uv, double* l, const double* guv, double gD, double bias,
                              double top, double* gd, double* gx, double* gy) {
   const int f = face_of(d);
   const double p1 = kScSg[f] * d[kScAx[f]], p2 = kTcSg[f] * d[kTcAx[f]], p3r = kMaSg[f] * d[kMaAx[f]];
   const double p3 = p3r < kEps ? kEps : p3r;
   const double a = p1 / p3, b = p2 / p3;
   if (!kGrad) {
-    *face = f;
+    *face = static_cast<int8_t>(f);
     uv[0] = 0.5 * (a + 1.0);
     uv[1] = 0.5 * (b + 1.0);
   }
@@ -225,6 +224,35 @@ DT_INLINE int bad_direction(const double* d) {
   return d[0] == 0 && d[1] == 0 && d[2] == 0 ? -1 : 0;
 }
 
+// Point e of cube_front (px, py null: no level): its face, uv and (D not null) level, in the inputs' dtype.
+template <typename scalar_t>
+DT_INLINE void front_one(int64_t e, const scalar_t* pd, const scalar_t* px, const scalar_t* py, const scalar_t* pb,
+                         double bias0, double S2, double band, double top, int8_t* face, scalar_t* uv, scalar_t* D) {
+  const bool derivs = px != nullptr;
+  double d[3], x[3], y[3], u[2] = {0.5, 0.5}, len = 0;
+  for (int i = 0; i < 3; ++i) {
+    d[i] = pd[3 * e + i];
+    if (derivs) x[i] = px[3 * e + i], y[i] = py[3 * e + i];
+  }
+  const int bad = bad_direction(d);
+  if (bad)
+    *face = static_cast<int8_t>(bad);
+  else
+    front_point<false, std::is_same<scalar_t, float>::value>(d, derivs ? x : nullptr, derivs ? y : nullptr, S2, band,
+                                                              face, u, &len, nullptr, 0, 0, top, nullptr, nullptr,
+                                                              nullptr);
+  uv[0] = static_cast<scalar_t>(u[0]);
+  uv[1] = static_cast<scalar_t>(u[1]);
+  if (D != nullptr) {
+    bool inside;
+    // The length in the tensor's dtype first, as the torch path adds it to the bias.
+    *D = bad ? scalar_t(0)
+             : static_cast<scalar_t>(level_of(
+                   static_cast<double>(static_cast<scalar_t>(len) + (pb ? pb[e] : static_cast<scalar_t>(bias0))), top,
+                   &inside));
+  }
+}
+
 }  // namespace
 
 std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> cube_front(torch::Tensor dirs, torch::Tensor dx,
@@ -234,41 +262,19 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> cube_front(torch::Tensor
   check_front(dirs, dx, dy, bias);
   const int64_t M = dirs.size(0);
   const bool derivs = dx.numel() > 0;
-  auto face = torch::empty({M}, dirs.options().dtype(torch::kInt64));
+  auto face = torch::empty({M}, dirs.options().dtype(torch::kChar));
   auto uv = torch::empty({M, 2}, dirs.options());
-  auto D = torch::empty({M}, dirs.options());
+  auto D = derivs ? torch::empty({M}, dirs.options()) : dirs.new_empty({0});
   const double S2 = static_cast<double>(S) * static_cast<double>(S), top = static_cast<double>(levels - 1);
   AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "cube_front", [&] {
     const scalar_t *pd = dirs.data_ptr<scalar_t>(), *px = derivs ? dx.data_ptr<scalar_t>() : nullptr,
                    *py = derivs ? dy.data_ptr<scalar_t>() : nullptr,
                    *pb = bias.numel() ? bias.data_ptr<scalar_t>() : nullptr;
-    int64_t* pf = face.data_ptr<int64_t>();
-    scalar_t *puv = uv.data_ptr<scalar_t>(), *pD = D.data_ptr<scalar_t>();
+    int8_t* pf = face.data_ptr<int8_t>();
+    scalar_t *puv = uv.data_ptr<scalar_t>(), *pD = derivs ? D.data_ptr<scalar_t>() : nullptr;
     at::parallel_for(0, M, 2048, [&](int64_t lo, int64_t hi) {
-      for (int64_t e = lo; e < hi; ++e) {
-        double d[3], x[3], y[3], u[2] = {0.5, 0.5}, len = 0;
-        for (int i = 0; i < 3; ++i) {
-          d[i] = pd[3 * e + i];
-          if (derivs) x[i] = px[3 * e + i], y[i] = py[3 * e + i];
-        }
-        const int bad = bad_direction(d);
-        if (bad) {
-          pf[e] = bad;
-        } else {
-          front_point<false, std::is_same<scalar_t, float>::value>(d, derivs ? x : nullptr, derivs ? y : nullptr, S2,
-                                                                    band, pf + e, u, &len, nullptr, 0, 0, top,
-                                                                    nullptr, nullptr, nullptr);
-        }
-        puv[2 * e] = static_cast<scalar_t>(u[0]);
-        puv[2 * e + 1] = static_cast<scalar_t>(u[1]);
-        bool inside;
-        // The length in the tensor's dtype first, as the torch path adds it to the bias.
-        pD[e] = derivs && !bad ? static_cast<scalar_t>(level_of(
-                                     static_cast<double>(static_cast<scalar_t>(len) +
-                                                         (pb ? pb[e] : static_cast<scalar_t>(bias0))),
-                                     top, &inside))
-                               : scalar_t(0);
-      }
+      for (int64_t e = lo; e < hi; ++e)
+        front_one(e, pd, px, py, pb, bias0, S2, band, top, pf + e, puv + 2 * e, derivs ? pD + e : nullptr);
     });
   });
   return {face, uv, D};
@@ -371,6 +377,43 @@ DT_INLINE void source_of(const CubeLevel& L, int64_t f, int64_t y, int64_t x, So
   }
 }
 
+// floor of a padded texel coordinate, x >= 0 for every face uv in [0, 1]: a truncation, no branch (the
+// fraction is random from point to point; common.h floor_capped's compare mispredicts, as single.cpp
+// measured). Anything else (never for a face uv) takes floor_capped.
+DT_INLINE double floor_pos(double x) {
+  return x >= 0 && x < 1e15 ? static_cast<double>(static_cast<int64_t>(x)) : floor_capped(x);
+}
+
+// common.h reads_of, the same levels and weights, for the levels D >= 0 that lod.py level gives (others
+// go to reads_of): its floor a truncation (floor_pos), as D's fraction varies from point to point and
+// floor_capped's compare mispredicts.
+DT_INLINE Reads cube_reads(double d, int64_t K, bool nearest, bool d_grad) {
+  if (!(d >= 0 && d < 1e15)) return reads_of(d, K, nearest, d_grad);
+  const double top = static_cast<double>(K - 1);
+  Reads r;
+  if (nearest) {
+    const double k = std::min(floor_pos(d + 0.5), top);
+    r.n = 1; r.k[0] = static_cast<int64_t>(k); r.wt[0] = 1.0; r.dwt[0] = 0.0;
+    return r;
+  }
+  const double k0 = std::min(floor_pos(d), top), t = d - k0;
+  r.k[0] = static_cast<int64_t>(k0);
+  if (k0 < top && t > 0) {
+    r.n = 2; r.wt[0] = 1.0 - t; r.dwt[0] = -1.0;
+    r.k[1] = r.k[0] + 1; r.wt[1] = t; r.dwt[1] = 1.0;
+  } else if (d_grad && k0 > 0) {
+    r.n = 2; r.wt[0] = 1.0; r.dwt[0] = 1.0;
+    r.k[1] = r.k[0] - 1; r.wt[1] = 0.0; r.dwt[1] = -1.0;
+  } else {
+    r.n = 1; r.wt[0] = 1.0; r.dwt[0] = 0.0;
+  }
+  return r;
+}
+
+// The level of point e (D empty: 0, one level).
+template <typename scalar_t>
+DT_INLINE double level_at(const scalar_t* pd, int64_t e) { return pd == nullptr ? 0.0 : static_cast<double>(pd[e]); }
+
 DT_INLINE int64_t clamp_i(double v, int64_t hi) {
   return v < 0 ? 0 : (v > static_cast<double>(hi) ? hi : static_cast<int64_t>(v));
 }
@@ -384,7 +427,7 @@ struct Tap {
 
 DT_INLINE void tap_of(const CubeLevel& L, int64_t f, double u, double v, Tap* t) {
   const double x = u * static_cast<double>(L.n) + 0.5, y = v * static_cast<double>(L.n) + 0.5;
-  const double x0 = floor_capped(x), y0 = floor_capped(y);
+  const double x0 = floor_pos(x), y0 = floor_pos(y);
   t->fx = x - x0;
   t->fy = y - y0;
   const int64_t c0 = clamp_i(x0, L.P - 1), c1 = clamp_i(x0 + 1, L.P - 1);
@@ -401,7 +444,7 @@ DT_INLINE void tap_of(const CubeLevel& L, int64_t f, double u, double v, Tap* t)
 DT_INLINE bool inner_tap(const CubeLevel& L, int64_t f, double u, double v, int64_t* base, double* fx, double* fy) {
   const double n = static_cast<double>(L.n);
   const double x = u * n + 0.5, y = v * n + 0.5;
-  const double x0 = floor_capped(x), y0 = floor_capped(y);
+  const double x0 = floor_pos(x), y0 = floor_pos(y);
   *fx = x - x0;
   *fy = y - y0;
   if (!(x0 >= 1 && x0 + 1 <= n && y0 >= 1 && y0 + 1 <= n)) return false;
@@ -416,23 +459,32 @@ DT_INLINE scalar_t fetch(const Source& s, const scalar_t* p) {
          static_cast<scalar_t>(s.w[2]) * p[s.a[2]];
 }
 
+std::vector<CubeLevel> level_tables(const std::vector<torch::Tensor>& levels, const std::vector<torch::Tensor>& ri,
+                                    const std::vector<torch::Tensor>& rw, c10::ScalarType dtype);
+
 std::vector<CubeLevel> cube_levels(const std::vector<torch::Tensor>& levels, const std::vector<torch::Tensor>& ri,
                                    const std::vector<torch::Tensor>& rw, const torch::Tensor& face,
                                    const torch::Tensor& uv, const torch::Tensor& D) {
-  TORCH_CHECK(!levels.empty() && levels.size() == ri.size() && levels.size() == rw.size(),
-              "cube_read: one ring table per level");
   const int64_t M = uv.size(0);
   TORCH_CHECK(uv.dim() == 2 && uv.size(1) == 2 && uv.is_contiguous(), "cube_read: uv must be contiguous [M, 2]");
-  TORCH_CHECK(face.dim() == 1 && face.size(0) == M && face.scalar_type() == torch::kInt64 && face.is_contiguous(),
-              "cube_read: face must be contiguous int64 [M]");
-  TORCH_CHECK(D.dim() == 1 && D.size(0) == M && D.scalar_type() == uv.scalar_type() && D.is_contiguous(),
-              "cube_read: D must be contiguous [M] of uv's dtype");
+  TORCH_CHECK(face.dim() == 1 && face.size(0) == M && face.scalar_type() == torch::kChar && face.is_contiguous(),
+              "cube_read: face must be contiguous int8 [M]");
+  TORCH_CHECK(D.numel() == 0 || (D.dim() == 1 && D.size(0) == M && D.scalar_type() == uv.scalar_type() &&
+                                 D.is_contiguous()),
+              "cube_read: D must be contiguous [M] of uv's dtype (or empty: level 0)");
+  return level_tables(levels, ri, rw, uv.scalar_type());
+}
+
+std::vector<CubeLevel> level_tables(const std::vector<torch::Tensor>& levels, const std::vector<torch::Tensor>& ri,
+                                    const std::vector<torch::Tensor>& rw, c10::ScalarType dtype) {
+  TORCH_CHECK(!levels.empty() && levels.size() == ri.size() && levels.size() == rw.size(),
+              "cube_read: one ring table per level");
   const int64_t C = levels[0].size(1);
   std::vector<CubeLevel> out;
   for (size_t k = 0; k < levels.size(); ++k) {
     const auto& t = levels[k];
     TORCH_CHECK(t.dim() == 4 && t.size(0) == 6 && t.size(1) == C && t.size(2) == t.size(3) && t.is_contiguous() &&
-                    t.scalar_type() == uv.scalar_type() && t.device().is_cpu(),
+                    t.scalar_type() == dtype && t.device().is_cpu(),
                 "cube_read: levels must be contiguous CPU [6, C, n, n] of uv's dtype");
     const int64_t n = t.size(2), P = n + 2;
     TORCH_CHECK(ri[k].dim() == 2 && ri[k].size(0) == 6 * (4 * P - 4) && ri[k].size(1) == 3 &&
@@ -444,15 +496,50 @@ std::vector<CubeLevel> cube_levels(const std::vector<torch::Tensor>& levels, con
   return out;
 }
 
+// Texel rows are prefetched kAhead points ahead (the faces are larger than the caches; measured on the
+// CPU: about a third off the read), for the face gradients too in the backward.
+constexpr int64_t kAhead = 12;
+#if defined(__GNUC__) || defined(__clang__)
+#define CUBE_PREFETCH(addr, write) __builtin_prefetch((addr), (write) ? 1 : 0, 3)
+#else
+#define CUBE_PREFETCH(addr, write) ((void)(addr))
+#endif
+
+// P: const scalar_t* (the levels, read) or scalar_t* (their gradients, written).
+template <bool kWrite, typename P>
+DT_INLINE void prefetch_point(const std::vector<CubeLevel>& L, const std::vector<P>& planes, int64_t C,
+                              int64_t f, double u, double v, double D) {
+  if (f < 0 || f > 5 || !std::isfinite(u) || !std::isfinite(v) || !std::isfinite(D)) return;
+  const int64_t K = static_cast<int64_t>(L.size());
+  const double kd = floor_pos(D);
+  const int64_t k0 = kd < 0 ? 0 : (kd > static_cast<double>(K - 1) ? K - 1 : static_cast<int64_t>(kd));
+  const int64_t k1 = D > kd && k0 + 1 < K ? k0 + 1 : k0;
+  for (int64_t k = k0; k <= k1; ++k) {
+    const CubeLevel& lv = L[k];
+    if (planes[k] == nullptr) continue;
+    const double n = static_cast<double>(lv.n);
+    const int64_t x = clamp_i(u * n - 0.5, lv.n - 1), y = clamp_i(v * n - 0.5, lv.n - 1);
+    const auto* p = planes[k] + f * lv.fstride + y * lv.n + x;
+    for (int64_t c = 0; c < C; ++c) {
+      CUBE_PREFETCH(p + c * lv.plane, kWrite);
+      CUBE_PREFETCH(p + c * lv.plane + lv.n, kWrite);
+    }
+  }
+}
+
 template <typename scalar_t, int CC>
 void read_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<CubeLevel>& L,
-                const std::vector<const scalar_t*>& lp, const int64_t* pf, const scalar_t* puv, const scalar_t* pd,
+                const std::vector<const scalar_t*>& lp, const int8_t* pf, const scalar_t* puv, const scalar_t* pd,
                 scalar_t* po, int64_t M, bool nearest, bool d_grad) {
   const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
   std::vector<scalar_t> heap(CC > 0 ? 0 : C);
   scalar_t stack[CC > 0 ? CC : 1];
   scalar_t* acc = CC > 0 ? stack : heap.data();
   for (int64_t e = lo; e < hi; ++e) {
+    if (e + kAhead < hi) {
+      const int64_t a = e + kAhead;
+      prefetch_point<false>(L, lp, C, pf[a], puv[2 * a], puv[2 * a + 1], level_at(pd, a));
+    }
     const double u = puv[2 * e], v = puv[2 * e + 1];
     const int64_t f = pf[e];
     if (!std::isfinite(u) || !std::isfinite(v) || f < 0 || f > 5) {
@@ -461,7 +548,7 @@ void read_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<CubeLeve
       for (int64_t c = 0; c < C; ++c) po[c * M + e] = fill;
       continue;
     }
-    const Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
+    const Reads r = cube_reads(level_at(pd, e), K, nearest, d_grad);
     for (int64_t c = 0; c < C; ++c) acc[c] = 0;
     for (int j = 0; j < r.n; ++j) {
       const CubeLevel& lv = L[r.k[j]];
@@ -515,12 +602,49 @@ torch::Tensor cube_read(std::vector<torch::Tensor> levels, std::vector<torch::Te
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "cube_read", [&] {
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
-    const int64_t* pf = face.data_ptr<int64_t>();
-    const scalar_t *puv = uv.data_ptr<scalar_t>(), *pd = D.data_ptr<scalar_t>();
+    const int8_t* pf = face.data_ptr<int8_t>();
+    const scalar_t *puv = uv.data_ptr<scalar_t>(), *pd = D.numel() ? D.data_ptr<scalar_t>() : nullptr;
     scalar_t* po = out.data_ptr<scalar_t>();
     at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
       by_channels(C, [&](auto cc) {
         read_range<scalar_t, decltype(cc)::value>(lo, hi, C, L, lp, pf, puv, pd, po, M, nearest, d_grad);
+      });
+    });
+  });
+  return out;
+}
+
+torch::Tensor cube_lookup(std::vector<torch::Tensor> levels, std::vector<torch::Tensor> ring_idx,
+                          std::vector<torch::Tensor> ring_w, torch::Tensor dirs, torch::Tensor dx, torch::Tensor dy,
+                          torch::Tensor bias, double bias0, int64_t S, double band, bool nearest) {
+  check_front(dirs, dx, dy, bias);
+  auto L = level_tables(levels, ring_idx, ring_w, dirs.scalar_type());
+  const int64_t C = levels[0].size(1), M = dirs.size(0), K = static_cast<int64_t>(L.size());
+  const bool derivs = dx.numel() > 0;
+  const double S2 = static_cast<double>(S) * static_cast<double>(S), top = static_cast<double>(K - 1);
+  auto out = torch::empty({C, M}, dirs.options());
+  AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "cube_lookup", [&] {
+    std::vector<const scalar_t*> lp;
+    for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
+    const scalar_t *pd = dirs.data_ptr<scalar_t>(), *px = derivs ? dx.data_ptr<scalar_t>() : nullptr,
+                   *py = derivs ? dy.data_ptr<scalar_t>() : nullptr,
+                   *pb = bias.numel() ? bias.data_ptr<scalar_t>() : nullptr;
+    scalar_t* po = out.data_ptr<scalar_t>();
+    at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
+      by_channels(C, [&](auto cc) {
+        // Blocks of points: the front end of the block (its texel rows prefetched as they come), then its reads.
+        constexpr int kB = 16;
+        int8_t fb[kB];
+        scalar_t uvb[2 * kB], Db[kB];
+        for (int64_t s = lo; s < hi; s += kB) {
+          const int64_t cnt = std::min<int64_t>(kB, hi - s);
+          for (int64_t i = 0; i < cnt; ++i) {
+            front_one(s + i, pd, px, py, pb, bias0, S2, band, top, fb + i, uvb + 2 * i, derivs ? Db + i : nullptr);
+            prefetch_point<false>(L, lp, C, fb[i], uvb[2 * i], uvb[2 * i + 1], derivs ? Db[i] : 0.0);
+          }
+          read_range<scalar_t, decltype(cc)::value>(0, cnt, C, L, lp, fb, uvb, derivs ? Db : nullptr, po + s, M,
+                                                    nearest, false);
+        }
       });
     });
   });
@@ -558,7 +682,7 @@ DT_INLINE int32_t cube_key(const CubeBands& T, const std::vector<CubeLevel>& L, 
   int64_t a[2], b[2], h[2];
   for (int j = 0; j < r.n; ++j) {
     const CubeLevel& lv = L[r.k[j]];
-    const int64_t y0 = clamp_i(floor_capped(v * static_cast<double>(lv.n) + 0.5), lv.P - 1);
+    const int64_t y0 = clamp_i(floor_pos(v * static_cast<double>(lv.n) + 0.5), lv.P - 1);
     h[j] = 6 * lv.P;
     // A margin row on each side (as taps.cpp).
     a[j] = std::max<int64_t>(f * lv.P + y0 - 1, 0);
@@ -583,7 +707,7 @@ struct CubeGrads {
 
 template <typename scalar_t, int CC>
 DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<CubeLevel>& L,
-                              const std::vector<const scalar_t*>& lp, const int64_t* pf, const scalar_t* puv,
+                              const std::vector<const scalar_t*>& lp, const int8_t* pf, const scalar_t* puv,
                               const scalar_t* pd, const scalar_t* pg, const CubeGrads<scalar_t>& out, int64_t M,
                               bool nearest, bool d_grad) {
   const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
@@ -599,7 +723,7 @@ DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<CubeLev
     any = any || g[c] != 0;
   }
   if (!any) return;
-  const Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
+  const Reads r = cube_reads(level_at(pd, e), K, nearest, d_grad);
   double du = 0, dv = 0, dD = 0;
   for (int j = 0; j < r.n; ++j) {
     const int64_t k = r.k[j];
@@ -682,6 +806,7 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_b
               "cube_read: grad must be [C, M] of uv's dtype");
   std::vector<torch::Tensor> gl(K);
   torch::Tensor guv = need_uv ? torch::zeros({M, 2}, uv.options()) : torch::Tensor();
+  need_D = need_D && D.numel() > 0;
   torch::Tensor gD = need_D ? torch::zeros({M}, uv.options()) : torch::Tensor();
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "cube_read_backward", [&] {
     std::vector<const scalar_t*> lp;
@@ -691,8 +816,8 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_b
     out.gr.assign(K, nullptr);
     out.uv = need_uv ? guv.data_ptr<scalar_t>() : nullptr;
     out.D = need_D ? gD.data_ptr<scalar_t>() : nullptr;
-    const int64_t* pf = face.data_ptr<int64_t>();
-    const scalar_t *puv = uv.data_ptr<scalar_t>(), *pd = D.data_ptr<scalar_t>(), *pg = grad.data_ptr<scalar_t>();
+    const int8_t* pf = face.data_ptr<int8_t>();
+    const scalar_t *puv = uv.data_ptr<scalar_t>(), *pd = (D.numel() ? D.data_ptr<scalar_t>() : nullptr), *pg = grad.data_ptr<scalar_t>();
     std::vector<int32_t> keys;
     CubeBands bands;
     std::vector<std::vector<scalar_t>> rings(K);
@@ -704,7 +829,7 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_b
       at::parallel_for(0, M, 4096, [&](int64_t lo, int64_t hi) {
         auto& rd = read[std::min<int64_t>(at::get_thread_num(), T - 1)];
         for (int64_t e = lo; e < hi; ++e) {
-          const Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
+          const Reads r = cube_reads(level_at(pd, e), K, nearest, d_grad);
           keys[e] = cube_key(bands, L, pf[e], puv[2 * e], puv[2 * e + 1], r);
           if (keys[e] >= 0)
             for (int j = 0; j < r.n; ++j) rd[r.k[j]] = 1;
@@ -724,13 +849,24 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_b
       auto one = [&](int64_t e) {
         backward_point<scalar_t, decltype(cc)::value>(e, C, L, lp, pf, puv, pd, pg, out, M, nearest, d_grad);
       };
+      auto ahead = [&](int64_t a) {
+        prefetch_point<false>(L, lp, C, pf[a], puv[2 * a], puv[2 * a + 1], level_at(pd, a));
+        if (need_levels)
+          prefetch_point<true>(L, out.gp, C, pf[a], puv[2 * a], puv[2 * a + 1], level_at(pd, a));
+      };
       if (need_levels) {
         run_banded(keys.data(), M, bands.classes, [&](const int64_t* idx, int64_t n) {
-          for (int64_t i = 0; i < n; ++i) one(idx[i]);
+          for (int64_t i = 0; i < n; ++i) {
+            if (i + kAhead < n) ahead(idx[i + kAhead]);
+            one(idx[i]);
+          }
         });
       } else {
         at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
-          for (int64_t e = lo; e < hi; ++e) one(e);
+          for (int64_t e = lo; e < hi; ++e) {
+            if (e + kAhead < hi) ahead(e + kAhead);
+            one(e);
+          }
         });
       }
     });

@@ -12,9 +12,9 @@ namespace difftex {
 
 // The front end, no graph: dirs [M, 3], dx / dy [M, 3] d(dirs) per pixel column / row (both empty: no
 // level); bias [M] (empty: bias0), S the face size, levels the pyramid's, band envmap/cube.py EDGE_BAND.
-// -> (face [M] int64, -1 for a zero and -2 for a non-finite direction; face uv [M, 2]; the level D [M]:
-// lod.py level of the trilinear log2 length in face texels blended across edges as cube.py _log2_length,
-// 0 without dx / dy).
+// -> (face [M] int8, -1 for a zero and -2 for a non-finite direction; face uv [M, 2]; the level D [M]:
+// lod.py level of the trilinear log2 length in face texels blended across edges as cube.py _log2_length;
+// empty without dx / dy).
 std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> cube_front(torch::Tensor dirs, torch::Tensor dx,
                                                                    torch::Tensor dy, torch::Tensor bias,
                                                                    double bias0, int64_t S, int64_t levels,
@@ -27,7 +27,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> cube_fron
 
 // The read: levels [6, C, n_k, n_k] of one cube; per level its gutter ring (1 texel around each face, ring
 // order of cube.py _ring_tables) as 3 source texels (flat in [6, n_k, n_k]) [R_k, 3] int64 and weights
-// [R_k, 3] float64; face [M] int64, uv [M, 2], D [M] (opts: nearest, d_grad; the wraps are unused) ->
+// [R_k, 3] float64; face [M] int8, uv [M, 2], D [M] (empty: level 0; nearest, d_grad as ReadOptions') ->
 // [C, M]; backward -> (level gradients [6, C, n_k, n_k], undefined where unread or not needed; uv [M, 2];
 // D [M]).
 torch::Tensor cube_read(std::vector<torch::Tensor> levels, std::vector<torch::Tensor> ring_idx,
@@ -37,5 +37,11 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_b
     std::vector<torch::Tensor> levels, std::vector<torch::Tensor> ring_idx, std::vector<torch::Tensor> ring_w,
     torch::Tensor face, torch::Tensor uv, torch::Tensor D, torch::Tensor grad, bool nearest, bool d_grad,
     bool need_levels, bool need_uv, bool need_D);
+
+// cube_front and cube_read in one pass, no graph (nothing needs a gradient): dirs, dx, dy, bias, bias0, S,
+// band as cube_front, the levels and their rings as cube_read (their count the pyramid's) -> [C, M].
+torch::Tensor cube_lookup(std::vector<torch::Tensor> levels, std::vector<torch::Tensor> ring_idx,
+                          std::vector<torch::Tensor> ring_w, torch::Tensor dirs, torch::Tensor dx, torch::Tensor dy,
+                          torch::Tensor bias, double bias0, int64_t S, double band, bool nearest);
 
 }  // namespace difftex
