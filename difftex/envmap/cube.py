@@ -584,18 +584,8 @@ def _native_lookup(cube: Union[Tensor, CubeMipmap], dirs: Tensor, derivs: list[T
         L = min(len(levels), level_count(S, S))
         levels, dx, dy = levels[:L], flat(derivs[0]), flat(derivs[1])
     b = bias.expand(B, H, W).reshape(-1).contiguous() if isinstance(bias, Tensor) and dx is not None else None
-    args = (flat(dirs), dx, dy, b, bias if isinstance(bias, float) else 0.0, S, L)
-    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (*args[:4], *levels)):
-        face, uv, D = _NativeFront.apply(*args)
-        out = _NativeRead.apply(face, uv, D, filter == "nearest-mip", *levels)
-    else:
-        # No graph: front end and read in one pass (no face / uv / level arrays in between).
-        none = base.new_empty(0)
-        rings = [_ring_tables(lv.shape[-1]) for lv in levels]
-        out = native.load().cube_lookup([lv[0].contiguous() for lv in levels], [r[0] for r in rings],
-                                        [r[1] for r in rings], args[0], none if dx is None else dx,
-                                        none if dy is None else dy, none if b is None else b.detach(), bias0=args[4],
-                                        S=S, band=EDGE_BAND, nearest=filter == "nearest-mip")
+    face, uv, D = _NativeFront.apply(flat(dirs), dx, dy, b, bias if isinstance(bias, float) else 0.0, S, L)
+    out = _NativeRead.apply(face, uv, D, filter == "nearest-mip", *levels)
     return out.view(C, B, H, W).transpose(0, 1)
 
 

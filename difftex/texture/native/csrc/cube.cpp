@@ -527,57 +527,107 @@ DT_INLINE void prefetch_point(const std::vector<CubeLevel>& L, const std::vector
   }
 }
 
+// Point e's read, any taps (the gutter included): the general path of read_range.
+template <typename scalar_t, int CC>
+DT_INLINE void read_point(int64_t e, int64_t C, const std::vector<CubeLevel>& L,
+                          const std::vector<const scalar_t*>& lp, int64_t f, double u, double v, const Reads& r,
+                          scalar_t* po, int64_t M, scalar_t* acc) {
+  for (int64_t c = 0; c < C; ++c) acc[c] = 0;
+  for (int j = 0; j < r.n; ++j) {
+    const CubeLevel& lv = L[r.k[j]];
+    const scalar_t* p = lp[r.k[j]];
+    const double wl = r.wt[j];
+    Tap t;
+    tap_of(lv, f, u, v, &t);
+    const scalar_t w[4] = {static_cast<scalar_t>(wl * (1 - t.fx) * (1 - t.fy)),
+                           static_cast<scalar_t>(wl * t.fx * (1 - t.fy)),
+                           static_cast<scalar_t>(wl * (1 - t.fx) * t.fy), static_cast<scalar_t>(wl * t.fx * t.fy)};
+    for (int64_t c = 0; c < C; ++c) {
+      const scalar_t* pp = p + c * lv.plane;
+      acc[c] += w[0] * fetch(t.s[0], pp) + w[1] * fetch(t.s[1], pp) + w[2] * fetch(t.s[2], pp) +
+                w[3] * fetch(t.s[3], pp);
+    }
+  }
+  for (int64_t c = 0; c < C; ++c) po[c * M + e] = acc[c];
+}
+
+// The forward over points [lo, hi), in blocks (as single.cpp's): first every point's levels and taps (the
+// fast path where all of them lie inside its face), then their texel rows prefetched for the whole block
+// (the faces are larger than the caches: one point's loads after another's leave the loop waiting on
+// memory), then the reads; a point with a tap in the gutter takes read_point.
 template <typename scalar_t, int CC>
 void read_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<CubeLevel>& L,
                 const std::vector<const scalar_t*>& lp, const int8_t* pf, const scalar_t* puv, const scalar_t* pd,
                 scalar_t* po, int64_t M, bool nearest, bool d_grad) {
+  constexpr int kB = 64;
   const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
   std::vector<scalar_t> heap(CC > 0 ? 0 : C);
   scalar_t stack[CC > 0 ? CC : 1];
   scalar_t* acc = CC > 0 ? stack : heap.data();
-  for (int64_t e = lo; e < hi; ++e) {
-    if (e + kAhead < hi) {
-      const int64_t a = e + kAhead;
-      prefetch_point<false>(L, lp, C, pf[a], puv[2 * a], puv[2 * a + 1], level_at(pd, a));
-    }
-    const double u = puv[2 * e], v = puv[2 * e + 1];
-    const int64_t f = pf[e];
-    if (!std::isfinite(u) || !std::isfinite(v) || f < 0 || f > 5) {
-      // face -1: a zero direction (0); else NaN (cube_front's codes).
-      const scalar_t fill = f == -1 ? scalar_t(0) : std::numeric_limits<scalar_t>::quiet_NaN();
-      for (int64_t c = 0; c < C; ++c) po[c * M + e] = fill;
-      continue;
-    }
-    const Reads r = cube_reads(level_at(pd, e), K, nearest, d_grad);
-    for (int64_t c = 0; c < C; ++c) acc[c] = 0;
-    for (int j = 0; j < r.n; ++j) {
-      const CubeLevel& lv = L[r.k[j]];
-      const scalar_t* p = lp[r.k[j]];
-      const double wl = r.wt[j];
-      int64_t a;
-      double fx, fy;
-      if (inner_tap(lv, f, u, v, &a, &fx, &fy)) {
-        const scalar_t w[4] = {static_cast<scalar_t>(wl * (1 - fx) * (1 - fy)), static_cast<scalar_t>(wl * fx * (1 - fy)),
-                               static_cast<scalar_t>(wl * (1 - fx) * fy), static_cast<scalar_t>(wl * fx * fy)};
-        const int64_t n = lv.n;
-        for (int64_t c = 0; c < C; ++c) {
-          const scalar_t* pp = p + c * lv.plane + a;
-          acc[c] += w[0] * pp[0] + w[1] * pp[1] + w[2] * pp[n] + w[3] * pp[n + 1];
-        }
+  int64_t base[2][kB];
+  double wts[2][kB][4];
+  int lev[2][kB], nl[kB];  // levels read; nl: their number on the fast path, 0 general, -1 no read
+  for (int64_t s = lo; s < hi; s += kB) {
+    const int cnt = static_cast<int>(std::min<int64_t>(kB, hi - s));
+    for (int i = 0; i < cnt; ++i) {
+      const int64_t e = s + i, f = pf[e];
+      const double u = puv[2 * e], v = puv[2 * e + 1];
+      if (!std::isfinite(u) || !std::isfinite(v) || f < 0 || f > 5) {
+        nl[i] = -1;
         continue;
       }
-      Tap t;
-      tap_of(lv, f, u, v, &t);
-      const scalar_t w[4] = {static_cast<scalar_t>(wl * (1 - t.fx) * (1 - t.fy)),
-                             static_cast<scalar_t>(wl * t.fx * (1 - t.fy)),
-                             static_cast<scalar_t>(wl * (1 - t.fx) * t.fy), static_cast<scalar_t>(wl * t.fx * t.fy)};
-      for (int64_t c = 0; c < C; ++c) {
-        const scalar_t* pp = p + c * lv.plane;
-        acc[c] += w[0] * fetch(t.s[0], pp) + w[1] * fetch(t.s[1], pp) + w[2] * fetch(t.s[2], pp) +
-                  w[3] * fetch(t.s[3], pp);
+      const Reads r = cube_reads(level_at(pd, e), K, nearest, d_grad);
+      nl[i] = r.n;
+      for (int j = 0; j < r.n; ++j) {
+        double fx, fy;
+        lev[j][i] = static_cast<int>(r.k[j]);
+        if (!inner_tap(L[r.k[j]], f, u, v, &base[j][i], &fx, &fy)) {
+          nl[i] = 0;
+          break;
+        }
+        const double wl = r.wt[j];
+        wts[j][i][0] = wl * (1 - fx) * (1 - fy);
+        wts[j][i][1] = wl * fx * (1 - fy);
+        wts[j][i][2] = wl * (1 - fx) * fy;
+        wts[j][i][3] = wl * fx * fy;
       }
     }
-    for (int64_t c = 0; c < C; ++c) po[c * M + e] = acc[c];
+    for (int i = 0; i < cnt; ++i)
+      for (int j = 0; j < nl[i]; ++j) {
+        const CubeLevel& lv = L[lev[j][i]];
+        const scalar_t* p = lp[lev[j][i]] + base[j][i];
+        for (int64_t c = 0; c < C; ++c) {
+          CUBE_PREFETCH(p + c * lv.plane, false);
+          CUBE_PREFETCH(p + c * lv.plane + lv.n, false);
+        }
+      }
+    for (int i = 0; i < cnt; ++i) {
+      const int64_t e = s + i, f = pf[e];
+      if (nl[i] < 0) {
+        // face -1: a zero direction (0); else NaN (cube_front's codes).
+        const scalar_t fill = f == -1 ? scalar_t(0) : std::numeric_limits<scalar_t>::quiet_NaN();
+        for (int64_t c = 0; c < C; ++c) po[c * M + e] = fill;
+        continue;
+      }
+      if (nl[i] == 0) {
+        read_point<scalar_t, CC>(e, C, L, lp, f, puv[2 * e], puv[2 * e + 1],
+                                 cube_reads(level_at(pd, e), K, nearest, d_grad), po, M, acc);
+        continue;
+      }
+      for (int64_t c = 0; c < C; ++c) acc[c] = 0;
+      for (int j = 0; j < nl[i]; ++j) {
+        const CubeLevel& lv = L[lev[j][i]];
+        const int64_t n = lv.n;
+        const scalar_t w0 = static_cast<scalar_t>(wts[j][i][0]), w1 = static_cast<scalar_t>(wts[j][i][1]),
+                       w2 = static_cast<scalar_t>(wts[j][i][2]), w3 = static_cast<scalar_t>(wts[j][i][3]);
+        const scalar_t* p = lp[lev[j][i]] + base[j][i];
+        for (int64_t c = 0; c < C; ++c) {
+          const scalar_t* pp = p + c * lv.plane;
+          acc[c] += w0 * pp[0] + w1 * pp[1] + w2 * pp[n] + w3 * pp[n + 1];
+        }
+      }
+      for (int64_t c = 0; c < C; ++c) po[c * M + e] = acc[c];
+    }
   }
 }
 
@@ -608,43 +658,6 @@ torch::Tensor cube_read(std::vector<torch::Tensor> levels, std::vector<torch::Te
     at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
       by_channels(C, [&](auto cc) {
         read_range<scalar_t, decltype(cc)::value>(lo, hi, C, L, lp, pf, puv, pd, po, M, nearest, d_grad);
-      });
-    });
-  });
-  return out;
-}
-
-torch::Tensor cube_lookup(std::vector<torch::Tensor> levels, std::vector<torch::Tensor> ring_idx,
-                          std::vector<torch::Tensor> ring_w, torch::Tensor dirs, torch::Tensor dx, torch::Tensor dy,
-                          torch::Tensor bias, double bias0, int64_t S, double band, bool nearest) {
-  check_front(dirs, dx, dy, bias);
-  auto L = level_tables(levels, ring_idx, ring_w, dirs.scalar_type());
-  const int64_t C = levels[0].size(1), M = dirs.size(0), K = static_cast<int64_t>(L.size());
-  const bool derivs = dx.numel() > 0;
-  const double S2 = static_cast<double>(S) * static_cast<double>(S), top = static_cast<double>(K - 1);
-  auto out = torch::empty({C, M}, dirs.options());
-  AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "cube_lookup", [&] {
-    std::vector<const scalar_t*> lp;
-    for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
-    const scalar_t *pd = dirs.data_ptr<scalar_t>(), *px = derivs ? dx.data_ptr<scalar_t>() : nullptr,
-                   *py = derivs ? dy.data_ptr<scalar_t>() : nullptr,
-                   *pb = bias.numel() ? bias.data_ptr<scalar_t>() : nullptr;
-    scalar_t* po = out.data_ptr<scalar_t>();
-    at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
-      by_channels(C, [&](auto cc) {
-        // Blocks of points: the front end of the block (its texel rows prefetched as they come), then its reads.
-        constexpr int kB = 16;
-        int8_t fb[kB];
-        scalar_t uvb[2 * kB], Db[kB];
-        for (int64_t s = lo; s < hi; s += kB) {
-          const int64_t cnt = std::min<int64_t>(kB, hi - s);
-          for (int64_t i = 0; i < cnt; ++i) {
-            front_one(s + i, pd, px, py, pb, bias0, S2, band, top, fb + i, uvb + 2 * i, derivs ? Db + i : nullptr);
-            prefetch_point<false>(L, lp, C, fb[i], uvb[2 * i], uvb[2 * i + 1], derivs ? Db[i] : 0.0);
-          }
-          read_range<scalar_t, decltype(cc)::value>(0, cnt, C, L, lp, fb, uvb, derivs ? Db : nullptr, po + s, M,
-                                                    nearest, false);
-        }
       });
     });
   });

@@ -38,10 +38,4 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_b
     torch::Tensor face, torch::Tensor uv, torch::Tensor D, torch::Tensor grad, bool nearest, bool d_grad,
     bool need_levels, bool need_uv, bool need_D);
 
-// cube_front and cube_read in one pass, no graph (nothing needs a gradient): dirs, dx, dy, bias, bias0, S,
-// band as cube_front, the levels and their rings as cube_read (their count the pyramid's) -> [C, M].
-torch::Tensor cube_lookup(std::vector<torch::Tensor> levels, std::vector<torch::Tensor> ring_idx,
-                          std::vector<torch::Tensor> ring_w, torch::Tensor dirs, torch::Tensor dx, torch::Tensor dy,
-                          torch::Tensor bias, double bias0, int64_t S, double band, bool nearest);
-
 }  // namespace difftex

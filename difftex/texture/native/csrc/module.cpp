@@ -123,9 +123,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("cube_read", &cube_read, "seamless bilinear-tap read of a cube pyramid, forward", py::arg("levels"),
         py::arg("ring_idx"), py::arg("ring_w"), py::arg("face"), py::arg("uv"), py::arg("D"), py::arg("nearest"),
         py::arg("d_grad"));
-  m.def("cube_lookup", &cube_lookup, "cube_front and cube_read in one pass, no graph", py::arg("levels"),
-        py::arg("ring_idx"), py::arg("ring_w"), py::arg("dirs"), py::arg("dx"), py::arg("dy"), py::arg("bias"),
-        py::kw_only(), py::arg("bias0"), py::arg("S"), py::arg("band"), py::arg("nearest"));
   m.def("cube_read_backward", &cube_read_backward, "cube_read, first-order backward", py::arg("levels"),
         py::arg("ring_idx"), py::arg("ring_w"), py::arg("face"), py::arg("uv"), py::arg("D"), py::arg("grad"),
         py::arg("nearest"), py::arg("d_grad"), py::kw_only(), py::arg("need_levels"), py::arg("need_uv"),
