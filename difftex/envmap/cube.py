@@ -76,9 +76,18 @@ Approximations (measured in tests/envmap/test_cube.py):
   corner (jump 0.028 on uniform [0, 1) texels at S = 8).
 * "anisotropic" / "auto": the level is blended across edges as trilinear's
   (``_edge_blend``: along great circles the largest jump at a face change
-  drops from 0.079 to 0.045 on S = 8 noise), but the tap count and spacing
-  are the centre face's, so they may jump where the point crosses an edge;
-  past an edge the taps keep the centre face's spacing.
+  drops from 0.079 to 0.045 on S = 8 noise), and within the edge band the
+  tap count is the largest of the faces' (the same on both sides of an
+  edge; per-face counts differed at 13-14 of 24 pairs of directions
+  straddling the edges), but the axis (the taps' extent and direction) is
+  the centre face's, so the spacing may still jump where the point crosses
+  an edge, and past an edge the taps keep the centre face's spacing
+  (along great circles with a 4 x 1.5-texel footprint the largest jump at
+  a face change is 0.105 against 0.034 inside faces; with 1.5 x 4 it is
+  0.045 against 0.086).
+* A NaN in a direction derivative is a zero footprint (lod's rule: level
+  0, one tap) on every backend, so it stays in its pixel: a NaN footprint
+  gives no NaN value and no NaN gradient to the cube.
 * "ewa" differs from ``difftex.sample``'s EWA even inside a face: the
   texels of the ellipse are replaced by bilinear taps, whose tent is the
   reconstruction (so, unlike pbrt, the ellipse gets no unit-texel padding,
@@ -101,18 +110,30 @@ Approximations (measured in tests/envmap/test_cube.py):
   averages only its own face's texels. For even sizes this is exact (each
   coarse texel is the mean of the 4 texels it covers, and the coarse faces
   meet along the same edges as the fine ones); odd sizes use difftex's
-  area-weighted box within each face.
+  area-weighted box within each face, which drops no texel (every face's
+  mean is kept, and every base texel weighs (S_k / S)^2 in level k's sum).
+
+Native path. On the CPU, "bilinear", "trilinear" and "nearest-mip" of one
+cube (B = 1 in the cube; the directions may be batched) run the native
+kernel (``csrc/cube.cpp``, where ``difftex.backend`` allows it) in two
+passes over the points: the front end (face, face uv and the edge-blended
+level from the directions and their derivatives, with a hand-written
+backward that recomputes each point) and the read (the bilinear taps of one
+or two levels straight from the faces; a tap past an edge reads the same
+gutter as the atlas, through the ring tables of ``_ring_tables``, so no
+atlas is built; the backward scatters into the levels' gradients by bands,
+as ``sample``'s kernels do). The torch path (atlas + ``mip_blend``) stays
+the reference the tests hold it to (tests/envmap/test_cube_native.py), and
+runs everything else: the other filters, CUDA, a batch of cubes, double
+backward (the native nodes hand it to the torch path).
 
 Cost (``experiments/bench/bench_cubemap.py``: 6 x 256^2 cube, 512^2
 directions, against ``difftex.sample`` on a 2D texture of as many texels in
-the same run). The face pick is a handful of selects (``_face_coords``),
-the atlas one autograd node with a hand adjoint (``_Atlas``; a
-``CubeMipmap`` keeps its atlases where no gradient is recorded), bilinear
-one ``grid_sample`` on the atlas, and the edge blend of the level touches
-only the points in the bands. What is left is elementwise passes over the
-points (the direction maths, the level, the per-level reads), which
-``sample`` runs in one native pass: the ratio stays well above 1.5 (see the
-README's speed section for the figures).
+the same run): the native path reads as fast as ``sample``'s kernels; what
+is left is the front end (the projection and the level measured on up to
+three faces near edges), so bilinear and trilinear, forward and forward +
+backward, measured 1.25-1.41x on a loaded machine (the README's speed
+section has the figures). EWA (the torch path) is about 5x.
 """
 from __future__ import annotations
 
@@ -378,7 +399,10 @@ def cubemap(
     Differentiable w.r.t. the cube (through the pyramid to the faces), dirs
     (not for "nearest"), and for the mip filters dirs_dx, dirs_dy and
     lod_bias. A zero direction gives 0 and passes no gradient (as
-    nvdiffrast); a NaN / infinite direction gives NaN in its own pixel only.
+    nvdiffrast); a NaN / infinite direction gives NaN in its own pixel only;
+    a NaN in dirs_dx / dirs_dy is a zero footprint there (level 0, one tap).
+    On the CPU "bilinear", "trilinear" and "nearest-mip" of one cube run the
+    native kernel (module docstring), the same values as the torch path.
 
     Raises ValueError naming the argument for a wrong cube shape, face count,
     non-square faces, dirs whose last dimension is not 3, mismatched
