@@ -76,9 +76,18 @@ Approximations (measured in tests/envmap/test_cube.py):
   corner (jump 0.028 on uniform [0, 1) texels at S = 8).
 * "anisotropic" / "auto": the level is blended across edges as trilinear's
   (``_edge_blend``: along great circles the largest jump at a face change
-  drops from 0.079 to 0.045 on S = 8 noise), but the tap count and spacing
-  are the centre face's, so they may jump where the point crosses an edge;
-  past an edge the taps keep the centre face's spacing.
+  drops from 0.079 to 0.045 on S = 8 noise), and within the edge band the
+  tap count is the largest of the faces' (the same on both sides of an
+  edge; per-face counts differed at 13-14 of 24 pairs of directions
+  straddling the edges), but the axis (the taps' extent and direction) is
+  the centre face's, so the spacing may still jump where the point crosses
+  an edge, and past an edge the taps keep the centre face's spacing
+  (along great circles with a 4 x 1.5-texel footprint the largest jump at
+  a face change is 0.105 against 0.034 inside faces; with 1.5 x 4 it is
+  0.045 against 0.086).
+* A NaN in a direction derivative is a zero footprint (lod's rule: level
+  0, one tap) on every backend, so it stays in its pixel: a NaN footprint
+  gives no NaN value and no NaN gradient to the cube.
 * "ewa" differs from ``difftex.sample``'s EWA even inside a face: the
   texels of the ellipse are replaced by bilinear taps, whose tent is the
   reconstruction (so, unlike pbrt, the ellipse gets no unit-texel padding,
@@ -101,18 +110,30 @@ Approximations (measured in tests/envmap/test_cube.py):
   averages only its own face's texels. For even sizes this is exact (each
   coarse texel is the mean of the 4 texels it covers, and the coarse faces
   meet along the same edges as the fine ones); odd sizes use difftex's
-  area-weighted box within each face.
+  area-weighted box within each face, which drops no texel (every face's
+  mean is kept, and every base texel weighs (S_k / S)^2 in level k's sum).
+
+Native path. On the CPU, "bilinear", "trilinear" and "nearest-mip" of one
+cube (B = 1 in the cube; the directions may be batched) run the native
+kernel (``csrc/cube.cpp``, where ``difftex.backend`` allows it) in two
+passes over the points: the front end (face, face uv and the edge-blended
+level from the directions and their derivatives, with a hand-written
+backward that recomputes each point) and the read (the bilinear taps of one
+or two levels straight from the faces; a tap past an edge reads the same
+gutter as the atlas, through the ring tables of ``_ring_tables``, so no
+atlas is built; the backward scatters into the levels' gradients by bands,
+as ``sample``'s kernels do). The torch path (atlas + ``mip_blend``) stays
+the reference the tests hold it to (tests/envmap/test_cube_native.py), and
+runs everything else: the other filters, CUDA, a batch of cubes, double
+backward (the native nodes hand it to the torch path).
 
 Cost (``experiments/bench/bench_cubemap.py``: 6 x 256^2 cube, 512^2
 directions, against ``difftex.sample`` on a 2D texture of as many texels in
-the same run). The face pick is a handful of selects (``_face_coords``),
-the atlas one autograd node with a hand adjoint (``_Atlas``; a
-``CubeMipmap`` keeps its atlases where no gradient is recorded), bilinear
-one ``grid_sample`` on the atlas, and the edge blend of the level touches
-only the points in the bands. What is left is elementwise passes over the
-points (the direction maths, the level, the per-level reads), which
-``sample`` runs in one native pass: the ratio stays well above 1.5 (see the
-README's speed section for the figures).
+the same run): the native path reads as fast as ``sample``'s kernels; what
+is left is the front end (the projection and the level measured on up to
+three faces near edges), so bilinear and trilinear, forward and forward +
+backward, measured 1.25-1.41x on a loaded machine (the README's speed
+section has the figures). EWA (the torch path) is about 5x.
 """
 from __future__ import annotations
 
@@ -135,7 +156,8 @@ from ..texture.pyramid.mipmap import Pyramid, level_count, mipmap
 from ..texture.sample import sample
 from ..texture.taps import taps
 from ..backend import single_level
-from .directions import _face_coords, cube_to_direction, direction_to_cube
+from ..texture import native
+from .directions import _face_coords, check_dirs_derivs, cube_to_direction, direction_to_cube
 
 #: Width, in [-1, 1] face coordinates, of the band along each edge over which the trilinear level
 #: blends with the neighbouring face's (see ``_log2_length``).
@@ -311,6 +333,22 @@ def _atlas(level: Tensor, g: int) -> Tensor:
     return _Atlas.apply(level, g)
 
 
+@lru_cache(maxsize=64)
+def _ring_tables(n: int) -> tuple[Tensor, Tensor]:
+    """``_gutter_table(n, 1)`` in the ring order of the native read (``csrc/cube.cpp``): per face (P = n + 2)
+    4 P - 4 slots, row 0 (x), row P - 1 (P + x), column 0 (2 P + y - 1), column P - 1 (3 P - 2 + y - 1);
+    [6 (4 P - 4), 3] source indices flat in [6, n, n] (int64) and weights (float64)."""
+    P = n + 2
+    pos, idx, w = _gutter_table(n, 1)
+    f, rc = pos // (P * P), pos % (P * P)
+    y, x = rc // P, rc % P
+    slot = torch.where(y == 0, x, torch.where(y == P - 1, P + x, torch.where(x == 0, 2 * P + y - 1, 3 * P - 3 + y)))
+    slot = f * (4 * P - 4) + slot
+    ri, rw = torch.empty_like(idx), torch.empty_like(w)
+    ri[slot], rw[slot] = idx, w
+    return ri.contiguous(), rw.contiguous()
+
+
 def _atlas_uv(face: Tensor, uv: Tensor, n: int, g: int) -> Tensor:
     """Face uv [..., 2] of faces [...] (any dtype) -> uv in the atlas of faces of n texels with gutter g."""
     P = n + 2 * g
@@ -361,7 +399,10 @@ def cubemap(
     Differentiable w.r.t. the cube (through the pyramid to the faces), dirs
     (not for "nearest"), and for the mip filters dirs_dx, dirs_dy and
     lod_bias. A zero direction gives 0 and passes no gradient (as
-    nvdiffrast); a NaN / infinite direction gives NaN in its own pixel only.
+    nvdiffrast); a NaN / infinite direction gives NaN in its own pixel only;
+    a NaN in dirs_dx / dirs_dy is a zero footprint there (level 0, one tap).
+    On the CPU "bilinear", "trilinear" and "nearest-mip" of one cube run the
+    native kernel (module docstring), the same values as the torch path.
 
     Raises ValueError naming the argument for a wrong cube shape, face count,
     non-square faces, dirs whose last dimension is not 3, mismatched
@@ -387,18 +428,7 @@ def cubemap(
     Bt, _, C, S, _ = base.shape
     Bd, H, W, _ = dirs.shape
     mip = filter in MIP_FILTERS
-    derivs = []
-    if mip or dirs_dx is not None or dirs_dy is not None:
-        for name, d in (("dirs_dx", dirs_dx), ("dirs_dy", dirs_dy)):
-            if d is None:
-                raise ValueError(f"{name}: required by filter {filter!r} (given together with the other "
-                                 f"derivative): expected [B, H, W, 3] = [{Bd}, {H}, {W}, 3], got None")
-            check_float(name, d, 4, last=3, shape_doc=f"[B, H, W, 3] = [{Bd}, {H}, {W}, 3]")
-            check_same(name, d, "cube", base)
-            if tuple(d.shape[1:3]) != (H, W):
-                raise ValueError(f"{name}: expected shape [B, H, W, 3] = [{Bd}, {H}, {W}, 3] like dirs, "
-                                 f"got {describe(d)}")
-            derivs.append(d)
+    derivs = check_dirs_derivs(dirs_dx, dirs_dy, dirs, filter, mip, "cube", base)
     bias = check_bias(lod_bias, dirs, "dirs", base, "cube", dims="H, W")
     if isinstance(cube, CubeMipmap):
         _check_levels(cube)
@@ -412,6 +442,8 @@ def cubemap(
         parts = [t for t in (base, dirs, *derivs, bias) if isinstance(t, Tensor)]
         return sum(t.reshape(-1)[:0].reshape(B, C, H, W) for t in parts)
 
+    if _native_kernel(base, dirs, filter) is not None:
+        return _native_lookup(base if pyramid is None else pyramid, dirs, derivs, filter, bias, B)
     # Zero and non-finite directions read a safe direction (no NaN in any
     # backward, no gradient from them) and get their value put back at the end.
     # One sum and one max say whether there is any (no per-point masks then).
@@ -440,6 +472,145 @@ def cubemap(
         atlas = _atlas(base, g) if pyramid is None else pyramid.atlas(0, g)
         out = sample(atlas, _atlas_uv(face, uv, S, g), filter=filter, wrap="clamp")
     return out if clean else _put_back(out, ok, zero, B, H, W)
+
+
+# --------------------------------------------------------------------------
+# the native path (csrc/cube.cpp): front end and read in one pass each
+# --------------------------------------------------------------------------
+
+#: Filters the native path runs (the others take the torch path).
+_NATIVE = ("bilinear", "trilinear", "nearest-mip")
+
+
+def _native_kernel(base: Tensor, dirs: Tensor, filter: str):
+    """The native module where it serves this lookup (CPU, float32 / float64, one cube, a filter of
+    ``_NATIVE``, ``difftex.backend`` allowing it), else None."""
+    if filter not in _NATIVE or base.shape[0] != 1 or base.dtype not in (torch.float32, torch.float64):
+        return None
+    kernel = native.kernel(dirs)
+    return kernel if kernel is not None and hasattr(kernel, "cube_read") else None
+
+
+def _torch_front(dirs: Tensor, dx: Optional[Tensor], dy: Optional[Tensor], bias: Union[float, Tensor], S: int,
+                 L: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The torch reference of ``cube_front`` on flat [M, 3] inputs: (face, uv, level D; zeros without dx, dy).
+    A zero or non-finite direction reads +x with zero derivatives (its face is not -1 / -2 here, and not read)."""
+    good = (torch.isfinite(dirs).all(-1) & (dirs != 0).any(-1)).unsqueeze(-1)
+    dirs = torch.where(good, dirs, torch.tensor([1.0, 0.0, 0.0], dtype=dirs.dtype, device=dirs.device))
+    if dx is None:
+        face, uv = direction_to_cube(dirs)
+        return face, uv, torch.zeros_like(uv[:, 0])
+    dx, dy = torch.where(good, dx, 0.0), torch.where(good, dy, 0.0)
+    face, uv, uv_dx, uv_dy = direction_to_cube(dirs, dirs_dx=dx, dirs_dy=dy)
+    return face, uv, level(_log2_length(dirs, [dx, dy], face, uv, uv_dx, uv_dy, S), bias, L)
+
+
+class _NativeFront(torch.autograd.Function):
+    """dirs, dx, dy [M, 3] (dx, dy None: bilinear, D empty), bias [M] (None: the number bias0) -> face [M]
+    int8 (-1 / -2 for a zero / non-finite direction), face uv [M, 2], level D [M] of a pyramid of L levels,
+    as ``_torch_front``, in one native pass; the backward recomputes each point (no graph)."""
+
+    @staticmethod
+    def forward(ctx, dirs: Tensor, dx: Optional[Tensor], dy: Optional[Tensor], bias: Optional[Tensor], bias0: float,
+                S: int, L: int):
+        none = dirs.new_empty(0)
+        ctx.args = (bias0, S, L)
+        face, uv, D = native.load().cube_front(dirs, none if dx is None else dx, none if dy is None else dy,
+                                               none if bias is None else bias, bias0=bias0, S=S, levels=L,
+                                               band=EDGE_BAND)
+        ctx.save_for_backward(dirs, dx, dy, bias)
+        ctx.mark_non_differentiable(face)
+        return face, uv, D
+
+    @staticmethod
+    def backward(ctx, _gface, guv: Optional[Tensor], gD: Optional[Tensor]):
+        dirs, dx, dy, bias = ctx.saved_tensors
+        bias0, S, L = ctx.args
+        need = ctx.needs_input_grad
+        guv = torch.zeros_like(dirs[:, :2]) if guv is None else guv
+        if dx is None or gD is None:
+            gD = dirs.new_empty(0)
+        if torch.is_grad_enabled():  # double backward: the differentiable torch path
+            def recompute() -> Tensor:
+                _, uv, D = _torch_front(dirs, dx, dy, bias0 if bias is None else bias, S, L)
+                return torch.cat([uv, D.unsqueeze(-1)], -1)
+            grad = torch.cat([guv, gD.unsqueeze(-1) if gD.numel() else torch.zeros_like(guv[:, :1])], -1)
+            return (*native.double_backward(recompute, (dirs, dx, dy, bias), need[:4], grad), None, None, None)
+        none = dirs.new_empty(0)
+        gd, gx, gy, gb = native.load().cube_front_backward(
+            dirs, none if dx is None else dx, none if dy is None else dy, none if bias is None else bias,
+            bias0=bias0, S=S, levels=L, band=EDGE_BAND, guv=guv, gD=gD, need_derivs=need[1] or need[2],
+            need_bias=need[3])
+        return (gd if need[0] else None, gx if need[1] else None, gy if need[2] else None, gb if need[3] else None,
+                None, None, None)
+
+
+def _torch_read(levels: Sequence[Tensor], face: Tensor, uv: Tensor, D: Tensor, nearest: bool) -> Tensor:
+    """The torch reference of ``cube_read``: levels [1, 6, C, n_k, n_k], face [M] (-1: 0, -2: NaN, no
+    gradient), uv [M, 2], D [M] -> [C, M], each level read on its 1-texel gutter atlas, blended by
+    ``mip_blend``."""
+    ok = face >= 0
+    D = D if D.numel() else uv.new_zeros(uv.shape[0])
+    x = torch.cat([uv, torch.where(ok, face, 0).to(uv.dtype).unsqueeze(-1)], -1)
+
+    def read_one(k: int, xs: list[Tensor]) -> Tensor:
+        at = _atlas_uv(xs[0][:, 2], xs[0][:, :2], levels[k].shape[-1], 1)
+        return separable_sample(_atlas(levels[k], 1), at.unsqueeze(0), "linear", "clamp", "clamp")[0]
+
+    out = mip_blend(D, len(levels), [x], per_level(read_one), nearest=nearest)
+    return torch.where(ok, out, torch.where(face == -1, 0.0, float("nan")).to(out.dtype))
+
+
+class _NativeRead(torch.autograd.Function):
+    """``_torch_read`` in one native pass over the points (D empty: level 0): the taps read the faces and,
+    past an edge, the gutter through ``_ring_tables`` (no atlas is built); the backward scatters straight
+    into the levels."""
+
+    @staticmethod
+    def forward(ctx, face: Tensor, uv: Tensor, D: Tensor, nearest: bool, *levels: Tensor) -> Tensor:
+        ctx.d_grad = ctx.needs_input_grad[2] and not nearest
+        ctx.nearest = nearest
+        ctx.save_for_backward(face, uv, D, *levels)
+        rings = [_ring_tables(lv.shape[-1]) for lv in levels]
+        ctx.rings = ([r[0] for r in rings], [r[1] for r in rings])
+        return native.load().cube_read([lv[0].contiguous() for lv in levels], *ctx.rings, face, uv, D, nearest,
+                                       ctx.d_grad)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        face, uv, D, *levels = ctx.saved_tensors
+        need = ctx.needs_input_grad
+        if torch.is_grad_enabled():
+            return native.double_backward(lambda: _torch_read(levels, face, uv, D, ctx.nearest),
+                                          (None, uv, D, None, *levels), need, grad)
+        need_levels = need[4:]
+        gl, guv, gD = native.load().cube_read_backward(
+            [lv[0].contiguous() for lv in levels], *ctx.rings, face, uv, D, grad, ctx.nearest, ctx.d_grad,
+            need_levels=any(need_levels), need_uv=need[1], need_D=need[2] and not ctx.nearest)
+        if need[2] and gD is None:
+            gD = torch.zeros_like(D)
+        return (None, guv if need[1] else None, gD if need[2] else None, None,
+                *native.level_grads(gl, need_levels, levels))
+
+
+def _native_lookup(cube: Union[Tensor, CubeMipmap], dirs: Tensor, derivs: list[Tensor], filter: str,
+                   bias: Union[float, Tensor], B: int) -> Tensor:
+    """``cubemap`` for the filters of ``_NATIVE`` on the native path: [B, C, H, W]. Zero and non-finite
+    directions are the kernel's to handle (0 / NaN, no gradient)."""
+    base = cube.levels[0] if isinstance(cube, CubeMipmap) else cube
+    C, S = base.shape[2], base.shape[-1]
+    _, H, W, _ = dirs.shape
+    flat = lambda t: t.expand(B, H, W, 3).reshape(-1, 3).contiguous()
+    if filter == "bilinear":
+        levels, L, dx, dy = [base], 1, None, None
+    else:
+        levels = (cube if isinstance(cube, CubeMipmap) else cube_mipmap(cube)).levels
+        L = min(len(levels), level_count(S, S))
+        levels, dx, dy = levels[:L], flat(derivs[0]), flat(derivs[1])
+    b = bias.expand(B, H, W).reshape(-1).contiguous() if isinstance(bias, Tensor) and dx is not None else None
+    face, uv, D = _NativeFront.apply(flat(dirs), dx, dy, b, bias if isinstance(bias, float) else 0.0, S, L)
+    out = _NativeRead.apply(face, uv, D, filter == "nearest-mip", *levels)
+    return out.view(C, B, H, W).transpose(0, 1)
 
 
 def _put_back(out: Tensor, ok: Tensor, zero: Tensor, B: int, H: int, W: int) -> Tensor:
@@ -607,6 +778,11 @@ def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tenso
     P = H * W
     flat = lambda t: t.expand(B, H, W, *t.shape[3:]).reshape(B * P, *t.shape[3:])
     pts, dx, dy, fc = flat(uv), flat(uv_dx), flat(uv_dy), flat(face)
+    # A NaN derivative is a zero footprint (lod's rule: level 0, one tap) on every backend; the native
+    # footprint front end would spread the anisotropic taps along a NaN axis (NaN in the pixel).
+    nan = dx.isnan().any(-1) | dy.isnan().any(-1)
+    if bool(nan.any()):
+        dx, dy = torch.where(nan[:, None], 0.0, dx), torch.where(nan[:, None], 0.0, dy)
     if isinstance(bias, Tensor):
         bias = flat(bias) if bias.dim() == 3 else bias
     L = min(len(levels), level_count(S, S))
@@ -622,10 +798,21 @@ def _mip(cube: Union[Tensor, CubeMipmap], face: Tensor, uv: Tensor, uv_dx: Tenso
         point, tap, weight, count = _ewa_taps(dx, dy, D, S, max_aniso, flat(dirs), [flat(d) for d in dds])
     else:
         D, axis, count = taps(filter, dx, dy, bias, S, S, L, max_aniso, tolerance)
-        # The level, continuous across edges as trilinear's; the tap count and axis stay the own face's.
+        # The level, continuous across edges as trilinear's. The axis stays the own face's; within the band the
+        # tap count is the largest of the faces' (the same on both sides of an edge, so it does not jump there).
         sub = lambda t, idx: t.index_select(0, idx) if isinstance(t, Tensor) and t.dim() == 1 else t
-        D = _edge_blend(D, flat(dirs), [flat(d) for d in dds], fc, pts,
-                        lambda a, b, idx: taps(filter, a, b, sub(bias, idx), S, S, L, max_aniso, tolerance)[0])
+        counts = []
+
+        def measure(a: Tensor, b: Tensor, idx: Tensor) -> Tensor:
+            Dn, _, cn = taps(filter, a, b, sub(bias, idx), S, S, L, max_aniso, tolerance)
+            counts.append((idx, cn))
+            return Dn
+
+        D = _edge_blend(D, flat(dirs), [flat(d) for d in dds], fc, pts, measure)
+        if count is not None:
+            for idx, cn in counts:
+                if cn is not None:
+                    count = count.scatter_reduce(0, idx, cn, "amax")
     nearest = filter == "nearest-mip"
     if weight is not None:
         fc, tap = direction_to_cube(tap)

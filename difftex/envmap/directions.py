@@ -10,6 +10,7 @@ from typing import Optional
 
 import torch
 
+from .._checks import check_float, check_same, describe
 from ..mapping.common import (
     EPS, UVResult, check_derivs, check_tensor, cube_tables, result, sphere_uv,
 )
@@ -168,4 +169,40 @@ def cube_to_direction(face: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     out = (torch.where(sc_ax[..., None] == axes, sc[..., None], 0.0)
            + torch.where(tc_ax[..., None] == axes, tc[..., None], 0.0)
            + torch.where(ma_ax[..., None] == axes, ma[..., None], 0.0))
+    return out
+
+
+def check_dirs_derivs(dirs_dx: object, dirs_dy: object, dirs: torch.Tensor, filter: str, needed: bool,
+                      ref_name: str, ref: torch.Tensor) -> list[torch.Tensor]:
+    """The ``dirs_dx`` / ``dirs_dy`` arguments of an environment lookup (``cubemap``, ``equirect``), checked.
+
+    Args:
+        dirs_dx, dirs_dy: what the caller got: None, or [B, H, W, 3] float tensors with the H, W of
+            ``dirs`` [B, H, W, 3] (B may differ: the caller broadcasts the batches).
+        filter: the lookup's filter, named in the message when ``needed``.
+        needed: whether the filter needs the derivatives (the mip filters).
+        ref_name, ref: the tensor whose dtype and device they must share, and its argument name.
+
+    Returns:
+        [] where neither is given and none is needed, else [dirs_dx, dirs_dy].
+
+    Raises ValueError naming the missing one (required by the filter, or by the other one given: they
+    come together) or one of a wrong rank, last dimension or H, W; TypeError for a non-float one or one
+    of another dtype / device than ``ref``.
+    """
+    if dirs_dx is None and dirs_dy is None and not needed:
+        return []
+    B, H, W, _ = dirs.shape
+    shape_doc = f"[B, H, W, 3] = [{B}, {H}, {W}, 3] like dirs"
+    out = []
+    for name, other, d in (("dirs_dx", "dirs_dy", dirs_dx), ("dirs_dy", "dirs_dx", dirs_dy)):
+        if d is None:
+            why = f"filter {filter!r}" if needed else f"given {other}"
+            raise ValueError(f"{name}: required by {why} (give dirs_dx and dirs_dy together): expected shape "
+                             f"{shape_doc}, got None")
+        d = check_float(name, d, 4, last=3, shape_doc=shape_doc)
+        check_same(name, d, ref_name, ref)
+        if tuple(d.shape[1:3]) != (H, W):
+            raise ValueError(f"{name}: expected shape {shape_doc}, got {describe(d)}")
+        out.append(d)
     return out

@@ -19,7 +19,7 @@ from .._checks import broadcast_batch, check_float, check_same, describe
 from ..texture import Mipmap, sample
 from ..texture.options import MIP_FILTERS, check_filter
 from ..mapping.common import EPS
-from .directions import cube_to_direction, direction_to_equirect_uv
+from .directions import check_dirs_derivs, cube_to_direction, direction_to_equirect_uv
 
 
 def _unit(dirs: Tensor, dds: list[Tensor]) -> tuple[Tensor, list[Tensor], Tensor]:
@@ -157,19 +157,7 @@ def equirect(
     dirs = _check_dirs("dirs", dirs, "env", base, "[B, H, W, 3]")
     check_filter(filter)
     B, H, W, _ = dirs.shape
-    shape_doc = f"[B, H, W, 3] = [{B}, {H}, {W}, 3] like dirs"
-    dds: list[Tensor] = []
-    if dirs_dx is not None or dirs_dy is not None or filter in MIP_FILTERS:
-        for name, d in (("dirs_dx", dirs_dx), ("dirs_dy", dirs_dy)):
-            if d is None:
-                other = "dirs_dy" if name == "dirs_dx" else "dirs_dx"
-                why = f"filter {filter!r}" if filter in MIP_FILTERS else f"given {other}"
-                raise ValueError(f"{name}: required by {why} (give dirs_dx and dirs_dy together): "
-                                 f"expected {shape_doc}, got None")
-            d = _check_dirs(name, d, "env", base, shape_doc)
-            if tuple(d.shape[1:3]) != (H, W):
-                raise ValueError(f"{name}: expected {shape_doc}, got {describe(d)}")
-            dds.append(d)
+    dds = check_dirs_derivs(dirs_dx, dirs_dy, dirs, filter, filter in MIP_FILTERS, "env", base)
     sizes = [base.shape[0], B] + [d.shape[0] for d in dds]
     broadcast_batch(["env", "dirs", "dirs_dx", "dirs_dy"][:len(sizes)], sizes)
     if dds:

@@ -6,15 +6,18 @@ and an edge of each), with the view's exact per-pixel direction derivatives;
 the 2D reference is ``difftex.sample`` (wrap "clamp") on a [1, 3, S, 6 S]
 texture (the same texels) at N x N uv of a view scaled so that a pixel covers
 about as many texels as on the cube (the same mip levels). Bilinear and
-trilinear, forward and forward + backward (gradients to the texels and the
-directions / uv); forward also from prebuilt pyramids (``cube_mipmap``, which
-keeps its gutter atlases, against ``difftex.mipmap``). The two are timed interleaved (difftex.testing.timing,
+trilinear (the issue's target: at most 1.5x), and EWA (reported, no target),
+forward and forward + backward (gradients to the texels and the directions /
+uv); forward also from prebuilt pyramids (``cube_mipmap`` against
+``difftex.mipmap``). On the CPU cubemap's bilinear / trilinear run the native
+kernel (``csrc/cube.cpp``) where it is built, as sample does. The two are timed interleaved (difftex.testing.timing,
 a pause before every call), so a load spike on a shared machine hits both;
 the ratio is the median of the per-round ratios.
 
 Prints a markdown table (median ms, interquartile spread, ratio).
 
-    python -m experiments.bench.bench_cubemap [--size 256] [--res 512] [--repeats 9] [--out docs/bench_cubemap.md]
+    python -m experiments.bench.bench_cubemap [--size 256] [--res 512] [--repeats 9] [--filters bilinear trilinear ewa]
+        [--out docs/bench_cubemap.md]
 """
 from __future__ import annotations
 
@@ -55,7 +58,7 @@ def plane_uv(n: int, texels_per_pixel: float, size: int):
     return uv, dx.expand(1, n, n, 2).contiguous(), dy.expand(1, n, n, 2).contiguous()
 
 
-def run(size: int, res: int, repeats: int, filters=("bilinear", "trilinear")) -> list[str]:
+def run(size: int, res: int, repeats: int, filters=("bilinear", "trilinear", "ewa")) -> list[str]:
     g = torch.Generator().manual_seed(0)
     cube = torch.rand(1, 6, 3, size, size, generator=g)
     tex = cube[0].permute(1, 2, 0, 3).reshape(1, 3, size, 6 * size).contiguous()
@@ -107,7 +110,7 @@ def main() -> None:
     p.add_argument("--size", type=int, default=256, help="cube face size S")
     p.add_argument("--res", type=int, default=512, help="directions per side")
     p.add_argument("--repeats", type=int, default=9)
-    p.add_argument("--filters", nargs="+", default=["bilinear", "trilinear"])
+    p.add_argument("--filters", nargs="+", default=["bilinear", "trilinear", "ewa"])
     p.add_argument("--out", default=None, help="also write the table to this markdown file")
     args = p.parse_args()
     head = f"torch {torch.__version__}, {torch.get_num_threads()} threads, cube 6 x {args.size}^2, {args.res}^2 dirs"

@@ -488,7 +488,14 @@ def test_cube_to_equirect_gradient_and_bad_size():
         difftex.envmap.cube_to_equirect(cube, (0, 4))
 
 
-def test_cube_mipmap_keeps_its_atlases_without_grad():
+@pytest.fixture
+def torch_path():
+    """The torch path (the grid_sample backend), which reads the gutter atlases (the native read needs none)."""
+    with use_backend("grid_sample"):
+        yield
+
+
+def test_cube_mipmap_keeps_its_atlases_without_grad(torch_path):
     cube, d = grad_inputs(S=8)
     dx, dy = tangent_derivs(d.detach(), 0.5)
     mm = cube_mipmap(cube.detach().clone())
@@ -600,3 +607,88 @@ def test_ewa_nonfinite_and_degenerate_footprints():
     # d's gradient where its derivative is NaN / infinite is NaN for every mip filter (direction_to_cube's
     # derivative maths); finite input keeps a finite gradient.
     assert gd[..., 2:, :].isfinite().all() and gd[..., 2, :].abs().sum() > 0  # a zero footprint: one tap
+
+
+# ---------------------------------------------------------------- leftovers: odd faces, NaN footprints, tap counts
+
+
+@pytest.mark.parametrize("S, sizes", [(5, [5, 3, 2, 1]), (7, [7, 4, 2, 1])])
+def test_cube_mipmap_odd_faces_keep_every_texel(S, sizes):
+    """Odd faces take mipmap's area-weighted box per face: no texel is dropped.
+
+    Each level keeps every face's mean, and every base texel weighs the same in a level's sum ((n_k / S)^2
+    each); level 1 of S = 5 averages texels 0, 1 of each axis with weights 3/5, 2/5."""
+    cube = torch.rand(1, 6, 2, S, S, dtype=F64, generator=torch.Generator().manual_seed(11)).requires_grad_()
+    mm = cube_mipmap(cube)
+    assert [lv.shape[-1] for lv in mm] == sizes
+    for lv in mm:
+        n = lv.shape[-1]
+        torch.testing.assert_close(lv.mean((-1, -2)), cube.mean((-1, -2)), rtol=0, atol=1e-14)
+        (g,) = torch.autograd.grad(lv.sum(), cube, retain_graph=True)
+        torch.testing.assert_close(g, torch.full_like(g, (n / S) ** 2), rtol=0, atol=1e-14)
+    if S == 5:
+        w = torch.tensor([0.6, 0.4], dtype=F64)
+        want = (cube[0, 3, 1, :2, :2] * w[:, None] * w[None, :]).sum()
+        torch.testing.assert_close(mm[1][0, 3, 1, 0, 0], want, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("filter", MIP)
+def test_nan_derivative_stays_in_its_pixel(filter):
+    """A NaN in one pixel's dirs_dx is a zero footprint there (lod's rule: level 0, one tap), on every
+    backend: its value is the zero footprint's, every other pixel is unchanged, and the cube's gradient
+    is exactly the one with that pixel's derivatives zero (finite; no NaN reaches the shared texels)."""
+    S, p = 8, 7
+    cube = torch.rand(1, 6, 2, S, S, dtype=F64, generator=torch.Generator().manual_seed(1)).requires_grad_()
+    d = random_dirs(50, seed=3)
+    dx, dy = tangent_derivs(d, 2.0 / S)
+    nan_dx = dx.clone()
+    nan_dx[0, 0, p, 1] = float("nan")
+    zero_dx, zero_dy = dx.clone(), dy.clone()
+    zero_dx[0, 0, p], zero_dy[0, 0, p] = 0.0, 0.0
+    for backend in ("native", "reference"):
+        with use_backend(backend):
+            out = cubemap(cube, d, filter=filter, dirs_dx=nan_dx, dirs_dy=dy)
+            (g,) = torch.autograd.grad(out.sum(), cube)
+            want = cubemap(cube, d, filter=filter, dirs_dx=zero_dx, dirs_dy=zero_dy)
+            (g0,) = torch.autograd.grad(want.sum(), cube)
+            clean = cubemap(cube, d, filter=filter, dirs_dx=dx, dirs_dy=dy)
+        assert out.isfinite().all() and g.isfinite().all(), backend
+        torch.testing.assert_close(out, want, rtol=0, atol=1e-14)
+        torch.testing.assert_close(g, g0, rtol=0, atol=1e-14)
+        others = torch.arange(50) != p
+        assert torch.equal(out[..., others], clean[..., others]), backend
+
+
+@pytest.mark.parametrize("filter", ["anisotropic", "auto"])
+def test_anisotropic_tap_count_does_not_jump_at_edges(filter, monkeypatch):
+    """Within the edge band the tap count is the largest of the faces' measures, the same on both sides of
+    an edge: pairs of directions 1e-9 apart across each of the 12 edges, with the same footprint, take as
+    many taps (on per-face counts they differed at 13 (anisotropic) and 14 (auto) of the 24 pairs)."""
+    import difftex.envmap.cube as cube_module
+    seen = []
+    spread = cube_module.spread_taps
+    monkeypatch.setattr(cube_module, "spread_taps", lambda uv, axis, count: seen.append(count) or spread(uv, axis, count))
+    S = 8
+    cube = torch.rand(1, 6, 1, S, S, dtype=F64, generator=torch.Generator().manual_seed(2))
+    g = torch.Generator().manual_seed(4)
+    pairs = []
+    for a in range(3):  # the 12 edges: two axes at +-1, the third free
+        for s1 in (-1.0, 1.0):
+            for s2 in (-1.0, 1.0):
+                for t in (-0.6, 0.35):
+                    p = torch.zeros(3, dtype=F64)
+                    p[a], p[(a + 1) % 3], p[(a + 2) % 3] = t, s1, s2
+                    eps = torch.zeros(3, dtype=F64)
+                    eps[(a + 1) % 3] = 1e-9 * s1
+                    pairs += [p + eps, p - eps]  # either face of the edge
+    d = torch.stack(pairs).view(1, 1, -1, 3)
+    d = d / d.norm(dim=-1, keepdim=True)
+    half = (1, 1, d.shape[2] // 2, 3)  # one footprint per pair
+    dx = (torch.randn(half, generator=g, dtype=F64) * (3.0 / S)).repeat_interleave(2, 2)
+    dy = (torch.randn(half, generator=g, dtype=F64) * (0.5 / S)).repeat_interleave(2, 2)
+    cubemap(cube, d, filter=filter, dirs_dx=dx, dirs_dy=dy)
+    count = seen[-1]
+    faces = direction_to_cube(d)[0].view(-1)
+    assert (faces[0::2] != faces[1::2]).all()  # each pair straddles an edge
+    assert torch.equal(count[0::2], count[1::2]), (count[0::2], count[1::2])
+    assert count.max() > 1

@@ -305,7 +305,7 @@ def test_bad_input():
     with pytest.raises(ValueError, match=r"dirs_dy: required by given dirs_dx"):
         equirect(env, d, dirs_dx=d)
     with pytest.raises(ValueError,
-                       match=r"dirs_dx: expected \[B, H, W, 3\] = \[1, 2, 2, 3\] like dirs, got shape \(1, 1, 2, 3\)"):
+                       match=r"dirs_dx: expected shape \[B, H, W, 3\] = \[1, 2, 2, 3\] like dirs, got shape \(1, 1, 2, 3\)"):
         equirect(env, d, filter="trilinear", dirs_dx=d[:, :1], dirs_dy=d)
     with pytest.raises(TypeError, match=r"dirs_dy: expected dtype torch.float32"):
         equirect(env, d, filter="trilinear", dirs_dx=d, dirs_dy=d.double())

@@ -22,7 +22,9 @@ compiler or ninja), which is reported once as a warning.
 
 The sources, one per kernel: ``csrc/taps.cpp`` (the taps, forward and
 backward), ``csrc/front.cpp``, ``csrc/box.cpp``, ``csrc/ewa.cpp``,
-``csrc/single.cpp`` (the single-level reads), with ``csrc/bands.h`` (the
+``csrc/single.cpp`` (the single-level reads), ``csrc/cube.cpp`` (the cube-map
+front end and read of ``difftex.envmap.cubemap``, declared in ``csrc/cube.h``),
+with ``csrc/bands.h`` (the
 threaded, lock-free texture-gradient scatter of single.cpp and taps.cpp),
 ``csrc/common.h`` (the shared inline helpers and the constants mirrored from
 the Python reference), ``csrc/kernels.h`` (the entry points and their

@@ -5,6 +5,7 @@
 // checks each against the Python constant it mirrors. The only translation
 // unit that defines the module.
 #include "common.h"
+#include "cube.h"
 #include "kernels.h"
 
 #include <array>
@@ -112,4 +113,20 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.attr("KIND_CODES") = kinds;
   m.attr("CUBIC_A") = kCubicA;
   m.attr("FAR_UV") = kFarUv;
+
+  // cube.cpp: the cube-map front end and read (envmap/cube.py's native path).
+  m.def("cube_front", &cube_front, "cube-map face, face uv and edge-blended trilinear level, no graph",
+        py::arg("dirs"), py::arg("dx"), py::arg("dy"), py::arg("bias"), py::kw_only(), py::arg("bias0"), py::arg("S"),
+        py::arg("levels"), py::arg("band"));
+  m.def("cube_front_backward", &cube_front_backward, "cube_front, first-order backward", py::arg("dirs"),
+        py::arg("dx"), py::arg("dy"), py::arg("bias"), py::kw_only(), py::arg("bias0"), py::arg("S"),
+        py::arg("levels"), py::arg("band"), py::arg("guv"), py::arg("gD"), py::arg("need_derivs"),
+        py::arg("need_bias"));
+  m.def("cube_read", &cube_read, "seamless bilinear-tap read of a cube pyramid, forward", py::arg("levels"),
+        py::arg("ring_idx"), py::arg("ring_w"), py::arg("face"), py::arg("uv"), py::arg("D"), py::arg("nearest"),
+        py::arg("d_grad"));
+  m.def("cube_read_backward", &cube_read_backward, "cube_read, first-order backward", py::arg("levels"),
+        py::arg("ring_idx"), py::arg("ring_w"), py::arg("face"), py::arg("uv"), py::arg("D"), py::arg("grad"),
+        py::arg("nearest"), py::arg("d_grad"), py::kw_only(), py::arg("need_levels"), py::arg("need_uv"),
+        py::arg("need_D"));
 }
