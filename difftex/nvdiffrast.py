@@ -56,7 +56,7 @@ from torch import Tensor
 from ._checks import check_float, check_same, describe
 from .envmap.cube import CubeMipmap, cubemap
 from .geometry.antialias import antialias as _antialias
-from .geometry.raster import Fragments, _fragments_of, _layers, _packed_of
+from .geometry.raster import Fragments, fragments_of, packed_fragments, visible_layers
 from .texture.options import MAX_ANISO, check_number
 from .texture.pyramid.mipmap import Mipmap, mipmap
 from .texture.sample import sample
@@ -195,11 +195,11 @@ def _packer(offset: int, output_db: bool, grad_db: bool) -> Callable[[Tensor, Te
     positions, ids + 1 (+ range offset), from the native kernel in that layout or from difftex fragments."""
 
     def emit(pos: Tensor, faces: Tensor, tri_id: Tensor) -> tuple[Tensor, Tensor]:
-        packed = _packed_of(pos, faces, tri_id, offset)
+        packed = packed_fragments(pos, faces, tri_id, offset)
         if packed is not None:
             rast, db = packed
         else:
-            frags = _fragments_of(pos, faces, tri_id)
+            frags = fragments_of(pos, faces, tri_id)
             ids = frags.tri_id + 1  # background -1 -> 0
             if offset:
                 ids = torch.where(ids > 0, ids + offset, 0)
@@ -235,7 +235,7 @@ def _raster_layers(glctx: object, pos: object, tri: object, resolution: object, 
     hw = _check_resolution(resolution)
     pos = _flip_y(pos)
     if pos.dim() == 3:
-        return [_layers(pos, faces, hw, False, _packer(0, ctx.output_db, grad_db))]
+        return [visible_layers(pos, faces, hw, False, _packer(0, ctx.output_db, grad_db))]
     if ranges is None:
         raise ValueError("ranges: required in range mode (pos [num_vertices, 4]): expected an int32 CPU tensor "
                          "[minibatch_size, 2] of (start, count), got None")
@@ -248,7 +248,8 @@ def _raster_layers(glctx: object, pos: object, tri: object, resolution: object, 
         if start < 0 or count < 0 or start + count > faces.shape[0]:
             raise ValueError(f"ranges: range (start {start}, count {count}) lies outside tri's "
                              f"{faces.shape[0]} triangles")
-        pieces.append(_layers(pos, faces[start:start + count], hw, False, _packer(start, ctx.output_db, grad_db)))
+        pieces.append(visible_layers(pos, faces[start:start + count], hw, False,
+                                     _packer(start, ctx.output_db, grad_db)))
     return pieces
 
 

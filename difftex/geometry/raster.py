@@ -865,7 +865,7 @@ def rasterize(
     ValueError naming ``resolution`` and the batch where the per-pixel
     buffers would exceed :data:`MAX_BYTES` (16 GiB by default).
     """
-    return next(_layers(pos, faces, resolution, cull_backfaces, _fragments_of))
+    return next(visible_layers(pos, faces, resolution, cull_backfaces, fragments_of))
 
 
 def depth_peel(
@@ -904,8 +904,8 @@ def depth_peel(
         raise TypeError(f"depth_peel: layers must be an int, got {type(layers).__name__}")
     if layers < 1:
         raise ValueError(f"depth_peel: layers must be >= 1, got {layers}")
-    return list(itertools.islice(_layers(pos, faces, resolution, cull_backfaces, _fragments_of, at_once=layers),
-                                 layers))
+    return list(itertools.islice(
+        visible_layers(pos, faces, resolution, cull_backfaces, fragments_of, at_once=layers), layers))
 
 
 def peel(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cull_backfaces: bool = False) -> Iterator[Fragments]:
@@ -916,14 +916,27 @@ def peel(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cull_backface
     surface every layer is background. Arguments, gradients and errors as
     :func:`depth_peel` (the errors are raised at the first ``next()``).
     """
-    return _layers(pos, faces, resolution, cull_backfaces, _fragments_of)
+    return visible_layers(pos, faces, resolution, cull_backfaces, fragments_of)
 
 
-def _layers(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_backfaces: bool,
-            emit: Callable[[Tensor, Tensor, Tensor], _T], at_once: int = 1) -> Iterator[_T]:
-    """Depth layers nearest first, without end: ``emit(pos, faces, tri_id)`` of the checked arguments and each
-    layer's visible triangle ids [B, H, W]. ``at_once``: the first visibility pass finds that many layers
-    where the native kernel serves (its k-buffer), the rest come one pass each."""
+def visible_layers(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_backfaces: bool,
+                   emit: Callable[[Tensor, Tensor, Tensor], _T], at_once: int = 1) -> Iterator[_T]:
+    """Depth layers nearest first, without end, each as ``emit(pos, faces, tri_id)``: the building block of
+    :func:`rasterize`, :func:`depth_peel`, :func:`peel` and ``difftex.nvdiffrast``.
+
+    Args:
+        pos, faces, resolution, cull_backfaces: as for :func:`rasterize`
+            (checked here, at the first ``next()``).
+        emit: called with the checked ``pos`` [B, V, 4], ``faces`` and one
+            layer's visible triangle ids [B, H, W] (-1 background), e.g.
+            :func:`fragments_of`.
+        at_once: the first visibility pass finds this many layers where the
+            native kernel serves (its k-buffer); later layers take one pass
+            each, behind the previous layer as a floor.
+
+    Yields what ``emit`` returns. The ids are not differentiable; ``emit``
+    decides what is. Raises what :func:`rasterize` raises.
+    """
     pos = _check_pos(pos)
     faces = check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
     H, W = _check_resolution(resolution)
@@ -941,8 +954,14 @@ def _layers(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_backface
         floor = (zbuf[:, -1].contiguous(), tri_id[..., -1].reshape(-1))
 
 
-def _fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
-    """The differentiable pass: barycentrics, depth and derivatives of the triangles ``tri_id`` [B, H, W] names."""
+def fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
+    """The differentiable pass: :class:`Fragments` of the triangles ``tri_id`` [B, H, W] names (-1 background).
+
+    ``pos`` [B, V, 4] and ``faces`` [F, 3] as checked by :func:`visible_layers`
+    (no checks here). bary, depth, bary_dx and bary_dy are differentiable
+    with respect to ``pos`` (native forward and first-order backward on the
+    CPU, the torch formula elsewhere and for double backward).
+    """
     from ..texture import native
 
     mod = native.kernel(pos)
@@ -971,10 +990,15 @@ def _fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
     return frags
 
 
-def _packed_of(pos: Tensor, faces: Tensor, tri_id: Tensor, offset: int) -> Optional[tuple[Tensor, Tensor]]:
-    """nvdiffrast's (rast, db) of ``tri_id`` straight from the native kernel (difftex.nvdiffrast's fast path):
-    rast = (b0, b1, depth, id + 1 + offset), db = (db0/dx, db0/dy, db1/dx, db1/dy) per column / row, zeros on
-    background; None where the kernel does not serve ``pos``."""
+def packed_fragments(pos: Tensor, faces: Tensor, tri_id: Tensor, offset: int) -> Optional[tuple[Tensor, Tensor]]:
+    """nvdiffrast's (rast, rast_db) of ``tri_id`` [B, H, W] straight from the native kernel (difftex.nvdiffrast's
+    fast path), or None where the kernel does not serve ``pos``.
+
+    rast [B, H, W, 4] = (b0, b1, depth, id + 1 + offset), rast_db [B, H, W, 4]
+    = (db0/dx, db0/dy, db1/dx, db1/dy) per column / row, zeros on background.
+    b0, b1 and rast_db are differentiable with respect to ``pos``; the depth
+    and id columns are not.
+    """
     from ..texture import native
 
     mod = native.kernel(pos)

@@ -343,7 +343,7 @@ def test_kbuffer_layers_equal_layer_by_layer_peeling(cull):
     # The ids must be the same, ties included (the mixed scene duplicates 30
     # faces: equal depths, decided by id, one per layer), also when the
     # k-buffer's layers are followed by floor-peeled ones.
-    from difftex.geometry.raster import _fragments_of, _layers
+    from difftex.geometry.raster import fragments_of, visible_layers
 
     pos, F = _mixed_scene()
     pos = torch.stack((pos, pos * 1.5)).float()
@@ -353,7 +353,7 @@ def test_kbuffer_layers_equal_layer_by_layer_peeling(cull):
     with use_backend("native"):
         got = [fr.tri_id for fr in depth_peel(pos, F, (H, W), K, cull_backfaces=cull)]
         mixed = [fr.tri_id for fr in itertools.islice(
-            _layers(pos, F, (H, W), cull, _fragments_of, at_once=2), K)]
+            visible_layers(pos, F, (H, W), cull, fragments_of, at_once=2), K)]
     for k in range(K):
         assert torch.equal(got[k], ref[k]), k
         assert torch.equal(mixed[k], ref[k]), k

@@ -71,7 +71,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
                                                 bool cull, int64_t bits, torch::Tensor floor_z,
                                                 torch::Tensor floor_id, bool count, int64_t layers);
 // raster.cpp: rasterize's differentiable pass, forward (geometry/raster.py
-// _fragments_of; the torch _bary_at gives the gradients). pos [B, V, 4]
+// fragments_of; the torch _bary_at gives the gradients). pos [B, V, 4]
 // float, faces [F, 3] int64, tri_id [B, H, W] int64 (-1 background) ->
 // (idx [N] flat covered pixels, bary, bary_dx, bary_dy [N, 3] there, dense
 // bary [B, H, W, 3], depth [B, H, W], bary_dx, bary_dy [B, H, W, 3]); with

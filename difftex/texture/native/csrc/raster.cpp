@@ -525,7 +525,7 @@ struct Tri {
 }  // namespace
 
 // rasterize's differentiable pass, forward only (geometry/raster.py
-// _fragments_of; its torch formula gives the gradients). One threaded pass
+// fragments_of; its torch formula gives the gradients). One threaded pass
 // over the pixels of tri_id [B, H, W] (-1 background) writes the dense
 // outputs, zeros on background, and the covered pixels in compact form
 // (flat index order), so no nonzero / gather / scatter on the Python side.
