@@ -197,9 +197,10 @@ def _packer(offset: int, output_db: bool, grad_db: bool) -> Callable[[Tensor, Te
     def emit(pos: Tensor, faces: Tensor, tri_id: Tensor) -> tuple[Tensor, Tensor]:
         packed = packed_fragments(pos, faces, tri_id, offset)
         if packed is not None:
-            rast, db = packed
+            rast, db, idx = packed
         else:
             frags = fragments_of(pos, faces, tri_id)
+            idx = frags._compact[0]
             ids = frags.tri_id + 1  # background -1 -> 0
             if offset:
                 ids = torch.where(ids > 0, ids + offset, 0)
@@ -209,6 +210,10 @@ def _packer(offset: int, output_db: bool, grad_db: bool) -> Callable[[Tensor, Te
             # Rows of the mirrored image run up the real one: d/d(row) there is nvdiffrast's d/dY.
             dx, dy = frags.bary_dx, frags.bary_dy
             db = torch.stack([dx[..., 0], dy[..., 0], dx[..., 1], dy[..., 1]], -1)
+        # interpolate() reads the covered pixels from here while rast is
+        # unchanged (same object, same version counter) instead of searching
+        # rast's ids again.
+        rast._difftex_covered = (idx, rast._version)
         if not output_db:
             return rast, rast.new_zeros(rast.shape[:3] + (0,))
         return rast, (db if grad_db else db.detach())
@@ -372,21 +377,26 @@ def interpolate(attr: Tensor, rast: Tensor, tri: Tensor, rast_db: Optional[Tenso
     faces = _check_tri(tri, attr.shape[-2], attr.device)
     # Covered pixels only, scattered into zeros: background pixels get exact
     # zeros and no gradient, and the cost follows the coverage.
-    flat_ids = rast[..., 3].detach().reshape(-1)
-    idx = torch.nonzero(flat_ids > 0).squeeze(1)
-    ids = flat_ids.index_select(0, idx).round().long() - 1
+    covered = getattr(rast, "_difftex_covered", None)  # set by rasterize (see _packer)
+    if covered is not None and covered[1] == rast._version:
+        idx = covered[0]
+    else:
+        idx = torch.nonzero((rast[..., 3].detach() > 0).view(-1)).squeeze(1)
+    uvc = rast.reshape(-1, 4).index_select(0, idx)  # (u, v, z, id + 1) of the covered pixels
+    ids = uvc[:, 3].detach().round().long() - 1
     if ids.numel() and int(ids.max()) >= faces.shape[0]:
         raise ValueError(f"rast: triangle id {int(ids.max()) + 1} exceeds tri's {faces.shape[0]} triangles; "
                          "pass the tri given to rasterize")
     a0, a1, a2 = _corner_values(attr, faces.index_select(0, ids), torch.div(idx, H * W, rounding_mode="floor")
                                 ).unbind(1)
     d0, d1 = a0 - a2, a1 - a2
-    uvc = rast.reshape(-1, 4).index_select(0, idx)
 
     def dense(vals: Tensor) -> Tensor:
-        return vals.new_zeros((B * H * W, vals.shape[1])).index_copy(0, idx, vals).view(B, H, W, -1)
+        out = vals.new_zeros((B * H * W, vals.shape[1]))
+        out.index_copy_(0, idx, vals)  # in place on fresh zeros: no second copy
+        return out.view(B, H, W, -1)
 
-    out = dense(a2 + uvc[:, 0:1] * d0 + uvc[:, 1:2] * d1)
+    out = dense(torch.addcmul(a2, uvc[:, 0:1], d0).addcmul_(uvc[:, 1:2], d1))
     if rast_db is None or diff_attrs is None:
         return out, out.new_zeros((B, H, W, 0))
     rast_db = check_float("rast_db", rast_db, 4, last=4, shape_doc="[minibatch_size, height, width, 4]")
@@ -402,10 +412,11 @@ def interpolate(attr: Tensor, rast: Tensor, tri: Tensor, rast_db: Optional[Tenso
         sel = [int(i) for i in diff_attrs]
         if any(i < 0 or i >= A for i in sel):
             raise ValueError(f"diff_attrs: indices must lie in [0, {A - 1}], got {list(diff_attrs)}")
-    d0, d1 = d0[:, sel], d1[:, sel]
+    if sel != list(range(A)):  # advanced indexing copies: only for a true subset
+        d0, d1 = d0[:, sel], d1[:, sel]
     db = rast_db.reshape(-1, 4).index_select(0, idx)
-    dX = db[:, 0:1] * d0 + db[:, 2:3] * d1
-    dY = db[:, 1:2] * d0 + db[:, 3:4] * d1
+    dX = (db[:, 0:1] * d0).addcmul_(db[:, 2:3], d1)
+    dY = (db[:, 1:2] * d0).addcmul_(db[:, 3:4], d1)
     return out, dense(torch.stack([dX, dY], -1).reshape(-1, 2 * len(sel)))
 
 

@@ -429,3 +429,19 @@ def test_native_packed_pass_matches_the_torch_path(dtype):
     for x, y in zip(ga, gb):
         torch.testing.assert_close(x, y, **tol)
         assert x.abs().sum() > 0
+
+
+def test_interpolate_reuses_rasterize_coverage_only_while_rast_is_unchanged():
+    # rasterize hands interpolate its covered pixels; an in-place change of
+    # rast (version counter) or a copy must fall back to reading rast's ids.
+    pos, tri, uv = _scene()
+    rast, db = dr.rasterize(CTX, pos, tri, (24, 28))
+    fresh = rast.clone()  # no cached coverage
+    a, _ = dr.interpolate(uv, rast, tri)
+    b, _ = dr.interpolate(uv, fresh, tri)
+    assert torch.equal(a, b) and a.abs().sum() > 0
+    with torch.no_grad():
+        rast[:, :12, :, 3] = 0  # drop the lower half's triangles
+    c, _ = dr.interpolate(uv, rast, tri)
+    assert torch.equal(c[:, :12], torch.zeros_like(c[:, :12]))
+    assert torch.equal(c[:, 12:], a[:, 12:])

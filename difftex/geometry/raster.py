@@ -990,12 +990,14 @@ def fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
     return frags
 
 
-def packed_fragments(pos: Tensor, faces: Tensor, tri_id: Tensor, offset: int) -> Optional[tuple[Tensor, Tensor]]:
+def packed_fragments(pos: Tensor, faces: Tensor, tri_id: Tensor,
+                     offset: int) -> Optional[tuple[Tensor, Tensor, Tensor]]:
     """nvdiffrast's (rast, rast_db) of ``tri_id`` [B, H, W] straight from the native kernel (difftex.nvdiffrast's
     fast path), or None where the kernel does not serve ``pos``.
 
     rast [B, H, W, 4] = (b0, b1, depth, id + 1 + offset), rast_db [B, H, W, 4]
-    = (db0/dx, db0/dy, db1/dx, db1/dy) per column / row, zeros on background.
+    = (db0/dx, db0/dy, db1/dx, db1/dy) per column / row, zeros on background;
+    the third tensor is the flat index [N] of the covered pixels.
     b0, b1 and rast_db are differentiable with respect to ``pos``; the depth
     and id columns are not.
     """
@@ -1004,5 +1006,5 @@ def packed_fragments(pos: Tensor, faces: Tensor, tri_id: Tensor, offset: int) ->
     mod = native.kernel(pos)
     if mod is None:
         return None
-    _, rast, db = _NativeFragments.apply(pos, faces, tri_id, mod, True, offset)
-    return rast, db
+    idx, rast, db = _NativeFragments.apply(pos, faces, tri_id, mod, True, offset)
+    return rast, db, idx

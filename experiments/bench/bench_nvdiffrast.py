@@ -68,8 +68,9 @@ def main() -> None:
                     lambda: dr.texture(tex_nhwc, texc, texd, filter_mode="linear-mipmap-linear")),
     }
     grads = {
-        "rasterize": (fwd_bwd(lambda p: difftex.rasterize(p, faces, (R, R)).bary, pos),
-                      fwd_bwd(lambda p: dr.rasterize(ctx, p, tri32, (R, R))[0], pos)),
+        # The loss on what both return differentiably: nvdiffrast's (u, v), difftex's first two barycentrics.
+        "rasterize": (fwd_bwd(lambda p: difftex.rasterize(p, faces, (R, R)).bary[..., :2], pos),
+                      fwd_bwd(lambda p: dr.rasterize(ctx, p, tri32, (R, R))[0][..., :2], pos)),
         "interpolate": (fwd_bwd(lambda a: difftex.interpolate(a, faces, frags, derivatives=True,
                                                               attr_faces=uv_faces), uv),
                         fwd_bwd(lambda a: dr.interpolate(a, rast, uvi32, rast_db=rast_db, diff_attrs="all"), uv)),

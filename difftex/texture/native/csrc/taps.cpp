@@ -135,7 +135,8 @@ template <typename scalar_t, int CC, bool kBorder>
 DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<Level>& L,
                               const std::vector<const scalar_t*>& lp, const scalar_t* puv, const scalar_t* pd,
                               const int64_t* pc, const scalar_t* pa, const scalar_t* pg, const Grads<scalar_t>& out,
-                              int64_t M, int64_t wrap_u, int64_t wrap_v, double border, bool nearest, bool d_grad) {
+                              int64_t gsc, int64_t gsm, int64_t wrap_u, int64_t wrap_v, double border, bool nearest,
+                              bool d_grad) {
   const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
   const scalar_t bv = static_cast<scalar_t>(border);
   std::vector<scalar_t> heap(CC > 0 ? 0 : C);
@@ -147,7 +148,7 @@ DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<Level>&
   const int64_t N = tap_count(pc, e);
   bool any = false;
   for (int64_t c = 0; c < C; ++c) {
-    g[c] = pg[c * M + e] / static_cast<scalar_t>(N);
+    g[c] = pg[c * gsc + e * gsm] / static_cast<scalar_t>(N);
     any = any || g[c] != 0;
   }
   if (!any) return;
@@ -297,9 +298,12 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
   bool need_axis = need.axis;
   auto L = shapes(levels, uv, D, axis, count);
   const int64_t K = static_cast<int64_t>(L.size()), C = levels[0].size(0), M = uv.size(0);
-  grad = grad.contiguous();
+  // Any strides: a channels-last output gradient (nvdiffrast's NHWC) is a
+  // [C, M] view with strides (1, C), and transposing it costs more than
+  // reading it in place.
   TORCH_CHECK(grad.dim() == 2 && grad.size(0) == C && grad.size(1) == M && grad.scalar_type() == uv.scalar_type(),
               "mip_read: grad must be [C, M] of uv's dtype");
+  const int64_t gsc = grad.stride(0), gsm = grad.stride(1);
   need_axis = need_axis && count.numel();
   std::vector<torch::Tensor> gl(K);
   torch::Tensor guv = need_uv ? torch::zeros({M, 2}, uv.options()) : torch::Tensor();
@@ -346,7 +350,7 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
     specialized(C, wrap_u, wrap_v, [&](auto cc, auto border_) {
       auto one = [&](int64_t e) {
         backward_point<scalar_t, decltype(cc)::value, decltype(border_)::value>(
-            e, C, L, lp, puv, pd, pc, pa, pg, out, M, wrap_u, wrap_v, border, nearest, d_grad);
+            e, C, L, lp, puv, pd, pc, pa, pg, out, gsc, gsm, wrap_u, wrap_v, border, nearest, d_grad);
       };
       if (need_levels) {
         run_banded(keys.data(), M, bands.classes, [&](const int64_t* idx, int64_t n) {
