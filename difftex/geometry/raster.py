@@ -632,8 +632,8 @@ def _visibility(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool
     depth peeling. The background's depth is +inf. The native kernel serves
     CPU tensors where ``difftex.backend`` sends them there; there ``layers`` >
     1 (without a floor) returns that many nearest fragments per pixel at
-    once, ids [B, H, W, layers] and depths [B * H * W, layers] (the torch
-    path returns one layer whatever ``layers`` says).
+    once, ids [layers, B, H, W] and the last layer's depth [B * H * W] (the
+    torch path returns one layer whatever ``layers`` says).
     """
     from ..texture import native
 
@@ -646,8 +646,8 @@ def _visibility(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool
         tri_id, zbuf = mod.raster(pos.contiguous(), faces.contiguous(), H, W, cull_backfaces,
                                   _subpixel_bits(H, W), fz.contiguous(), fid.contiguous(), layers=layers)
         if layers > 1:
-            return tri_id.view(B, H, W, layers), zbuf.view(-1, layers)
-        return tri_id.view(B, H, W), zbuf.view(-1)
+            return tri_id.view(layers, B, H, W), zbuf
+        return tri_id.view(B, H, W), zbuf
     F = faces.shape[0]
     zbuf = torch.full((B * H * W,), float("inf"), dtype=torch.float64, device=pos.device)
     ibuf = torch.full((B * H * W,), _ID_EMPTY, dtype=torch.int64, device=pos.device)
@@ -946,12 +946,12 @@ def visible_layers(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_b
         with torch.no_grad():
             tri_id, zbuf = _visibility(pos, faces, H, W, cull_backfaces, floor, at_once if floor is None else 1)
         if tri_id.dim() == 3:
-            tri_id, zbuf = tri_id[..., None], zbuf[:, None]
-        for k in range(tri_id.shape[-1]):
-            yield emit(pos, faces, tri_id[..., k].contiguous())
+            tri_id = tri_id[None]
+        for k in range(tri_id.shape[0]):
+            yield emit(pos, faces, tri_id[k])
         # A background pixel's floor depth is +inf: no finite depth passes it,
         # whatever its id (-1).
-        floor = (zbuf[:, -1].contiguous(), tri_id[..., -1].reshape(-1))
+        floor = (zbuf, tri_id[-1].reshape(-1))
 
 
 def fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:

@@ -66,7 +66,8 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
 // (depth peeling). -> (ids [B * H * W] int64, -1 background, or with count
 // the number of covering fragments; depth [B * H * W] float64, +inf
 // background). With layers K > 1 (no floor, no count) the K nearest
-// fragments per pixel in (depth, id) order, [B * H * W * K] each.
+// fragments per pixel in (depth, id) order: ids [K * B * H * W] layer-major,
+// and the K-th layer's depth [B * H * W].
 std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor faces, int64_t H, int64_t W,
                                                 bool cull, int64_t bits, torch::Tensor floor_z,
                                                 torch::Tensor floor_id, bool count, int64_t layers);

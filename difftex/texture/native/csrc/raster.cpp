@@ -211,8 +211,10 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     floor_z = floor_z.contiguous();
     floor_id = floor_id.contiguous();
   }
-  auto ids = torch::empty({B * HW * K}, torch::kInt64);
-  auto depth = torch::empty({B * HW * K}, torch::kFloat64);
+  // K > 1: ids layer-major [K, B * H * W] (each layer contiguous) and the
+  // depth of the K-th layer only (the floor of any further layer).
+  auto ids = torch::empty({K * B * HW}, torch::kInt64);
+  auto depth = torch::empty({B * HW}, torch::kFloat64);
   const double* fz = has_floor ? floor_z.data_ptr<double>() : nullptr;
   const int64_t* fi = has_floor ? floor_id.data_ptr<int64_t>() : nullptr;
   int64_t* out_id = ids.data_ptr<int64_t>();
@@ -310,18 +312,26 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
             for (int32_t b = band0[f]; b <= band1[f]; ++b) list[cnt[ch * nb + b]++] = int32_t(f);
     });
     // Bands: each thread owns its rows of the output.
-    int64_t* oid = out_id + bi * HW * K;
-    double* oz = out_z + bi * HW * K;
+    int64_t* oid = out_id + bi * HW;
+    double* oz = out_z + bi * HW;
     const double* bfz = has_floor ? fz + bi * HW : nullptr;
     const int64_t* bfi = has_floor ? fi + bi * HW : nullptr;
     at::parallel_for(0, nb, 1, [&](int64_t lo, int64_t hi) {
       Exact e;
       Float fl;
+      // K > 1: the band's k-buffer, in cache, written out per layer at the
+      // end of the band; K = 1 works in the output itself.
+      std::vector<double> kz(K > 1 ? kBand * W * K : 0);
+      std::vector<int64_t> ki(K > 1 ? kBand * W * K : 0);
       for (int64_t band = lo; band < hi; ++band) {
         const int64_t R0 = band * kBand, R1 = std::min(H, R0 + kBand);
-        for (int64_t p = R0 * W * K; p < R1 * W * K; ++p) {
-          oz[p] = INFINITY;
-          oid[p] = count ? 0 : kEmpty;
+        // Pixel p's K entries start at zb / ib + (p - p0) * K.
+        double* zb = K > 1 ? kz.data() : oz;
+        int64_t* ib = K > 1 ? ki.data() : oid;
+        const int64_t p0 = K > 1 ? R0 * W : 0;
+        for (int64_t j = (R0 * W - p0) * K; j < (R1 * W - p0) * K; ++j) {
+          zb[j] = INFINITY;
+          ib[j] = count ? 0 : kEmpty;
         }
         // One covered fragment (z in range): count it, or the depth test.
         auto frag = [&](int64_t p, double z, int64_t f) {
@@ -333,8 +343,8 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
           if (has_floor && !(z > bfz[p] || (z == bfz[p] && f > bfi[p]))) return;
           // The pixel's K nearest fragments so far in (depth, id) order (a
           // k-buffer; K = 1: the z-buffer): insert unless behind the K-th.
-          double* zs = oz + p * K;
-          int64_t* is = oid + p * K;
+          double* zs = zb + (p - p0) * K;
+          int64_t* is = ib + (p - p0) * K;
           int64_t k = K - 1;
           if (!(z < zs[k] || (z == zs[k] && f < is[k]))) return;
           for (; k > 0 && (z < zs[k - 1] || (z == zs[k - 1] && f < is[k - 1])); --k) {
@@ -396,9 +406,16 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
             }
           }
         }
-        if (!count)
-          for (int64_t p = R0 * W * K; p < R1 * W * K; ++p)
+        if (K > 1) {
+          for (int64_t p = R0 * W; p < R1 * W; ++p) {
+            const int64_t* is = ib + (p - p0) * K;
+            for (int64_t k = 0; k < K; ++k) out_id[k * B * HW + bi * HW + p] = is[k] == kEmpty ? -1 : is[k];
+            oz[p] = zb[(p - p0) * K + K - 1];
+          }
+        } else if (!count) {
+          for (int64_t p = R0 * W; p < R1 * W; ++p)
             if (oid[p] == kEmpty) oid[p] = -1;
+        }
       }
     });
   }
