@@ -573,16 +573,23 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
   const int64_t N = first[rows];
   auto opt = pos.options();
   auto idx = torch::empty({N}, tri_id.options());
+  // Mostly background (a deep depth-peeling layer): the dense outputs start
+  // as zeros (a parallel fill) and only covered pixels are written; else
+  // every pixel is written once, zeros included.
+  const bool prezero = 2 * N < rows * W;
+  auto dense = [&](at::IntArrayRef shape, const at::TensorOptions& o) {
+    return prezero ? torch::zeros(shape, o) : torch::empty(shape, o);
+  };
   std::vector<torch::Tensor> out{idx};
   if (packed) {
-    out.push_back(torch::empty({B, H, W, 4}, opt));  // rast: (b0, b1, depth, id + 1 + offset), 0 on background
-    out.push_back(torch::empty({B, H, W, 4}, opt));  // db: (db0/dX, db0/dY, db1/dX, db1/dY)
+    out.push_back(dense({B, H, W, 4}, opt));  // rast: (b0, b1, depth, id + 1 + offset), 0 on background
+    out.push_back(dense({B, H, W, 4}, opt));  // db: (db0/dX, db0/dY, db1/dX, db1/dY)
   } else {
     for (auto k : {3, 3, 3}) out.push_back(torch::empty({N, k}, opt));  // compact bary, d/dcolumn, d/drow
-    out.push_back(torch::empty({B, H, W, 3}, opt));
-    out.push_back(torch::empty({B, H, W}, opt));
-    out.push_back(torch::empty({B, H, W, 3}, opt));
-    out.push_back(torch::empty({B, H, W, 3}, opt));
+    out.push_back(dense({B, H, W, 3}, opt));
+    out.push_back(dense({B, H, W}, opt));
+    out.push_back(dense({B, H, W, 3}, opt));
+    out.push_back(dense({B, H, W, 3}, opt));
   }
   AT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "raster_fragments", [&] {
     using T = scalar_t;
@@ -605,6 +612,7 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
           const int64_t p = r * W + col;
           const int64_t f = pid[p];
           if (f < 0) {
+            if (prezero) continue;
             if (packed) {
               for (int k = 0; k < 4; ++k) o[0][4 * p + k] = o[1][4 * p + k] = 0;
             } else {
