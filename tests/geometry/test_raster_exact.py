@@ -349,15 +349,21 @@ def test_kbuffer_layers_equal_layer_by_layer_peeling(cull):
     pos = torch.stack((pos, pos * 1.5)).float()
     H, W, K = 29, 37, 5
     with use_backend("reference"):
-        ref = [fr.tri_id for fr in depth_peel(pos, F, (H, W), K, cull_backfaces=cull)]
+        ref_fr = depth_peel(pos, F, (H, W), K, cull_backfaces=cull)
     with use_backend("native"):
-        got = [fr.tri_id for fr in depth_peel(pos, F, (H, W), K, cull_backfaces=cull)]
+        got_fr = depth_peel(pos, F, (H, W), K, cull_backfaces=cull)
+    ref, got = [fr.tri_id for fr in ref_fr], [fr.tri_id for fr in got_fr]
+    # the values too: dense layers and mostly-background ones (zero-filled outputs)
+    for a, b in zip(got_fr, ref_fr):
+        for name in ("bary", "depth", "bary_dx", "bary_dy"):
+            torch.testing.assert_close(getattr(a, name), getattr(b, name), atol=2e-5, rtol=1e-5)
         mixed = [fr.tri_id for fr in itertools.islice(
             visible_layers(pos, F, (H, W), cull, fragments_of, at_once=2), K)]
     for k in range(K):
         assert torch.equal(got[k], ref[k]), k
         assert torch.equal(mixed[k], ref[k]), k
     assert (ref[1 if cull else 2] >= 0).sum() > 50  # deep layers are not empty (culled: sphere / twin, ground)
+    assert (ref[0] >= 0).float().mean() > 0.5 > (ref[-1] >= 0).float().mean()  # both output strategies
     # a duplicated face (id 1282 + i duplicates i) comes right behind its twin
     twin = (ref[0] >= 0) & (ref[0] < 30)
     assert twin.any() and torch.equal(ref[1][twin], ref[0][twin] + len(F) - 30)
