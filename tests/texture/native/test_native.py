@@ -68,6 +68,8 @@ def _front_cases(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.
     dx[35:40, 0], dy[35:40, 1] = float("nan"), float("inf")  # NaN wins
     dy[40:60] = dx[40:60] * 3  # rank 1: minor axis 0
     dy[60:80] = torch.stack((-dx[60:80, 1], dx[60:80, 0]), -1)  # round in uv (not in texels unless square)
+    dx[80:85, 1] = float("nan")  # NaN in a component std::max would drop (its second argument)
+    dy[85:90, 1] = float("nan")
     bias = torch.randn(M, generator=g, dtype=dtype) * 2
     bias[100:103] = torch.tensor([float("nan"), float("inf"), -float("inf")], dtype=dtype)
     bias[103:105] = torch.tensor([500.0, -500.0], dtype=dtype)

@@ -37,6 +37,33 @@ inline int64_t band_count(int64_t h, int64_t reach, int64_t cap = 512) {
   return nb;
 }
 
+// The bands of a level-gradient scatter at several scales (taps.cpp,
+// cube.cpp): nb0 bands (scale 0) of h0 rows, where a point writes at most
+// four consecutive rows, then nb0 / 2, ... down to 2. A point is keyed at
+// the finest scale whose band holds its rows; bands of scale s are classes
+// 2s (even) and 2s + 1 (odd); the last key (serial) is for the points no
+// scale holds, run serially at the end.
+struct ScaleBands {
+  int64_t nb0, scales, serial;  // serial: the last band's key
+  std::vector<int64_t> offset;  // first key of each scale
+  std::vector<int32_t> classes;
+};
+
+inline ScaleBands scale_bands(int64_t h0) {
+  ScaleBands t;
+  // Four rows of level 0 (two taps and a margin row on each side) fit in the finest band.
+  t.nb0 = band_count(h0, 4);
+  t.scales = 0;
+  for (int64_t nb = t.nb0; nb >= 2; nb /= 2) {
+    t.offset.push_back(static_cast<int64_t>(t.classes.size()));
+    for (int64_t j = 0; j < nb; ++j) t.classes.push_back(static_cast<int32_t>(2 * t.scales + j % 2));
+    ++t.scales;
+  }
+  t.serial = static_cast<int64_t>(t.classes.size());
+  t.classes.push_back(static_cast<int32_t>(2 * t.scales));
+  return t;
+}
+
 // The band of row r in [0, h) of a level cut into nb bands.
 inline int64_t band_of(int64_t r, int64_t h, int64_t nb) { return r * nb / h; }
 

@@ -695,30 +695,10 @@ torch::Tensor cube_read(std::vector<torch::Tensor> levels, std::vector<torch::Te
 
 namespace {
 
-// The bands of the level-gradient scatter (bands.h), as taps.cpp's: rows of the virtual atlas of each level
-// (6 faces of P_k padded rows, stacked), bands the same fractions of every level's height, at scales nb0,
-// nb0 / 2, ... 2 (classes 2 s + parity), the last band (serial) for what no scale holds.
-struct CubeBands {
-  int64_t nb0, scales, serial;
-  std::vector<int64_t> offset;
-  std::vector<int32_t> classes;
-};
-
-CubeBands cube_bands(int64_t h0) {
-  CubeBands t;
-  t.nb0 = band_count(h0, 4);
-  t.scales = 0;
-  for (int64_t nb = t.nb0; nb >= 2; nb /= 2) {
-    t.offset.push_back(static_cast<int64_t>(t.classes.size()));
-    for (int64_t j = 0; j < nb; ++j) t.classes.push_back(static_cast<int32_t>(2 * t.scales + j % 2));
-    ++t.scales;
-  }
-  t.serial = static_cast<int64_t>(t.classes.size());
-  t.classes.push_back(static_cast<int32_t>(2 * t.scales));
-  return t;
-}
-
-DT_INLINE int32_t cube_key(const CubeBands& T, const std::vector<CubeLevel>& L, int64_t f, double u, double v,
+// The bands of the level-gradient scatter are bands.h's ScaleBands, as in
+// taps.cpp, over the rows of the virtual atlas of each level (6 faces of
+// P_k padded rows, stacked): the same fractions of every level's height.
+DT_INLINE int32_t cube_key(const ScaleBands& T, const std::vector<CubeLevel>& L, int64_t f, double u, double v,
                            const Reads& r) {
   if (!std::isfinite(u) || !std::isfinite(v) || f < 0 || f > 5) return -1;
   int64_t a[2], b[2], h[2];
@@ -861,10 +841,10 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_b
     const int8_t* pf = face.data_ptr<int8_t>();
     const scalar_t *puv = uv.data_ptr<scalar_t>(), *pd = (D.numel() ? D.data_ptr<scalar_t>() : nullptr), *pg = grad.data_ptr<scalar_t>();
     std::vector<int32_t> keys;
-    CubeBands bands;
+    ScaleBands bands;
     std::vector<std::vector<scalar_t>> rings(K);
     if (need_levels) {
-      bands = cube_bands(6 * L[0].P);
+      bands = scale_bands(6 * L[0].P);
       keys.resize(M);
       const int64_t T = std::max<int64_t>(1, at::get_num_threads());
       std::vector<std::vector<char>> read(T, std::vector<char>(K, 0));

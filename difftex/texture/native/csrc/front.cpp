@@ -46,10 +46,11 @@ DT_INLINE Taps front_one(double dx0, double dx1, double dy0, double dy1, double 
   const double j0 = dx0 * W, j1 = dx1 * H, j2 = dy0 * W, j3 = dy1 * H;
   Taps t{0.0, 0.0, 0.0, 1};
   const double top = std::max(std::max(std::abs(j0), std::abs(j1)), std::max(std::abs(j2), std::abs(j3)));
-  if (!(top > 0) || std::isinf(top)) {
+  // std::max drops a NaN in its second argument, so NaN is tested on its own.
+  const bool nan = std::isnan(j0) || std::isnan(j1) || std::isnan(j2) || std::isnan(j3);
+  if (nan || !(top > 0) || std::isinf(top)) {
     // A point (zero or NaN derivatives) or the whole texture (infinite
     // ones, NaN winning): one tap at that end of the pyramid.
-    const bool nan = std::isnan(j0) || std::isnan(j1) || std::isnan(j2) || std::isnan(j3);
     t.D = clamp_level((std::isinf(top) && !nan ? kFar : -kFar) + bias, levels);
     return t;
   }

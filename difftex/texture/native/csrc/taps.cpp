@@ -202,34 +202,10 @@ DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<Level>&
   }
 }
 
-// The bands of the taps' level-gradient scatter (bands.h). A point writes
-// rows of up to two levels, around its taps' v range (N taps along the
-// axis); the bands are fractions of the texture height, the same on every
-// level, at several scales: nb0 bands (scale 0), nb0 / 2, ... down to 2,
-// the point keyed at the finest scale whose band holds its rows. Bands of
-// scale s are classes 2s (even) and 2s + 1 (odd); the last band is one
-// for the points no scale holds (a range over half the texture, or a
-// non-finite one), run serially at the end.
-struct TapBands {
-  int64_t nb0, scales, serial;  // serial: the last band's key
-  std::vector<int64_t> offset;  // first key of each scale
-  std::vector<int32_t> classes;
-};
-
-TapBands tap_bands(int64_t h0) {
-  TapBands t;
-  // Four rows of level 0 (two taps and a margin row on each side) fit in the finest band.
-  t.nb0 = band_count(h0, 4);
-  t.scales = 0;
-  for (int64_t nb = t.nb0; nb >= 2; nb /= 2) {
-    t.offset.push_back(static_cast<int64_t>(t.classes.size()));
-    for (int64_t j = 0; j < nb; ++j) t.classes.push_back(static_cast<int32_t>(2 * t.scales + j % 2));
-    ++t.scales;
-  }
-  t.serial = static_cast<int64_t>(t.classes.size());
-  t.classes.push_back(static_cast<int32_t>(2 * t.scales));
-  return t;
-}
+// The taps' level-gradient scatter uses bands.h's ScaleBands: a point
+// writes rows of up to two levels, around its taps' v range (N taps along
+// the axis); the bands are fractions of the texture height, the same on
+// every level.
 
 DT_INLINE int64_t floor_div(int64_t a, int64_t b) { return a >= 0 ? a / b : -((-a + b - 1) / b); }
 
@@ -257,8 +233,8 @@ DT_INLINE void rows_of(double lo, double hi, int64_t h, int mode, int64_t* a, in
   }
 }
 
-// Point e's band key (TapBands), or -1 where it writes nothing.
-DT_INLINE int32_t tap_key(const TapBands& T, const std::vector<Level>& L, double u, double v, const Reads& r,
+// Point e's band key (ScaleBands), or -1 where it writes nothing.
+DT_INLINE int32_t tap_key(const ScaleBands& T, const std::vector<Level>& L, double u, double v, const Reads& r,
                           int64_t N, double av, int wrap_v) {
   if (!std::isfinite(u) || !std::isfinite(v)) return -1;
   const double half = N > 1 ? std::abs(av) * (0.5 - 0.5 / static_cast<double>(N)) : 0.0;
@@ -321,10 +297,10 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
     const scalar_t* pa = pc ? axis.data_ptr<scalar_t>() : nullptr;
     const scalar_t *puv = uv.data_ptr<scalar_t>(), *pd = D.data_ptr<scalar_t>(), *pg = grad.data_ptr<scalar_t>();
     std::vector<int32_t> keys;
-    TapBands bands;
+    ScaleBands bands;
     if (need_levels) {
       // The points' band keys, and the levels read (their gradients are allocated, zeroed, only for those).
-      bands = tap_bands(L[0].h);
+      bands = scale_bands(L[0].h);
       keys.resize(M);
       const int64_t T = std::max<int64_t>(1, at::get_num_threads());
       std::vector<std::vector<char>> read(T, std::vector<char>(K, 0));
