@@ -845,22 +845,15 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_b
     std::vector<std::vector<scalar_t>> rings(K);
     if (need_levels) {
       bands = scale_bands(6 * L[0].P);
-      keys.resize(M);
-      const int64_t T = std::max<int64_t>(1, at::get_num_threads());
-      std::vector<std::vector<char>> read(T, std::vector<char>(K, 0));
-      at::parallel_for(0, M, 4096, [&](int64_t lo, int64_t hi) {
-        auto& rd = read[std::min<int64_t>(at::get_thread_num(), T - 1)];
-        for (int64_t e = lo; e < hi; ++e) {
-          const Reads r = cube_reads(level_at(pd, e), K, nearest, d_grad);
-          keys[e] = cube_key(bands, L, pf[e], puv[2 * e], puv[2 * e + 1], r);
-          if (keys[e] >= 0)
-            for (int j = 0; j < r.n; ++j) rd[r.k[j]] = 1;
-        }
+      const std::vector<char> read = band_keys(M, K, keys, [&](int64_t e, std::vector<char>& rd) {
+        const Reads r = cube_reads(level_at(pd, e), K, nearest, d_grad);
+        const int32_t key = cube_key(bands, L, pf[e], puv[2 * e], puv[2 * e + 1], r);
+        if (key >= 0)
+          for (int j = 0; j < r.n; ++j) rd[r.k[j]] = 1;
+        return key;
       });
       for (int64_t k = 0; k < K; ++k) {
-        bool any = false;
-        for (const auto& rd : read) any = any || rd[k];
-        if (!any) continue;
+        if (!read[k]) continue;
         gl[k] = torch::zeros_like(levels[k]);
         out.gp[k] = gl[k].template data_ptr<scalar_t>();
         rings[k].assign(static_cast<size_t>(6 * L[k].ring * C), scalar_t(0));

@@ -301,24 +301,17 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
     if (need_levels) {
       // The points' band keys, and the levels read (their gradients are allocated, zeroed, only for those).
       bands = scale_bands(L[0].h);
-      keys.resize(M);
-      const int64_t T = std::max<int64_t>(1, at::get_num_threads());
-      std::vector<std::vector<char>> read(T, std::vector<char>(K, 0));
-      at::parallel_for(0, M, 4096, [&](int64_t lo, int64_t hi) {
-        auto& rd = read[std::min<int64_t>(at::get_thread_num(), T - 1)];
-        for (int64_t e = lo; e < hi; ++e) {
-          const Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
-          const int64_t N = tap_count(pc, e);
-          keys[e] = tap_key(bands, L, puv[2 * e], puv[2 * e + 1], r, N, pc ? static_cast<double>(pa[2 * e + 1]) : 0.0,
-                            static_cast<int>(wrap_v));
-          if (keys[e] >= 0)
-            for (int j = 0; j < r.n; ++j) rd[r.k[j]] = 1;
-        }
+      const std::vector<char> read = band_keys(M, K, keys, [&](int64_t e, std::vector<char>& rd) {
+        const Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
+        const int64_t N = tap_count(pc, e);
+        const int32_t key = tap_key(bands, L, puv[2 * e], puv[2 * e + 1], r, N,
+                                    pc ? static_cast<double>(pa[2 * e + 1]) : 0.0, static_cast<int>(wrap_v));
+        if (key >= 0)
+          for (int j = 0; j < r.n; ++j) rd[r.k[j]] = 1;
+        return key;
       });
       for (int64_t k = 0; k < K; ++k) {
-        bool any = false;
-        for (const auto& rd : read) any = any || rd[k];
-        if (!any) continue;
+        if (!read[k]) continue;
         gl[k] = torch::zeros_like(levels[k]);
         out.gp[k] = gl[k].template data_ptr<scalar_t>();
       }
