@@ -213,7 +213,8 @@ def _packer(offset: int, output_db: bool, grad_db: bool) -> Callable[[Tensor, Te
         # interpolate() reads the covered pixels from here while rast is
         # unchanged (same object, same version counter) instead of searching
         # rast's ids again.
-        rast._difftex_covered = (idx, rast._version)
+        if not rast.is_inference():  # inference tensors have no version counter
+            rast._difftex_covered = (idx, rast._version)
         if not output_db:
             return rast, rast.new_zeros(rast.shape[:3] + (0,))
         return rast, (db if grad_db else db.detach())
@@ -377,7 +378,7 @@ def interpolate(attr: Tensor, rast: Tensor, tri: Tensor, rast_db: Optional[Tenso
     faces = _check_tri(tri, attr.shape[-2], attr.device)
     # Covered pixels only, scattered into zeros: background pixels get exact
     # zeros and no gradient, and the cost follows the coverage.
-    covered = getattr(rast, "_difftex_covered", None)  # set by rasterize (see _packer)
+    covered = None if rast.is_inference() else getattr(rast, "_difftex_covered", None)  # see _packer
     if covered is not None and covered[1] == rast._version:
         idx = covered[0]
     else:

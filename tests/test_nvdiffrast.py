@@ -445,3 +445,7 @@ def test_interpolate_reuses_rasterize_coverage_only_while_rast_is_unchanged():
     c, _ = dr.interpolate(uv, rast, tri)
     assert torch.equal(c[:, :12], torch.zeros_like(c[:, :12]))
     assert torch.equal(c[:, 12:], a[:, 12:])
+    with torch.inference_mode():  # no version counter there: no cache, the same values
+        r, _ = dr.rasterize(CTX, pos, tri, (24, 28))
+        d, _ = dr.interpolate(uv, r, tri)
+    assert torch.equal(d, a)
