@@ -764,9 +764,11 @@ class _NativeFragments(torch.autograd.Function):
 
     Outputs (idx, bary_c, dx_c, dy_c, bary, depth, bary_dx, bary_dy), or with
     ``packed`` nvdiffrast's (idx, rast, db) (rast's depth and id take no
-    gradient). The backward gathers the dense gradients at the covered pixels
-    and differentiates the torch formula :func:`_bary_at` there, from ``pos``
-    itself under create_graph (so double backward works).
+    gradient). The first-order backward is the kernel's hand-written adjoint
+    of the same formula, reading the gradients where autograd leaves them;
+    under create_graph the dense gradients are gathered at the covered pixels
+    and the torch formula :func:`_bary_at` is differentiated there from
+    ``pos`` itself (so double backward works).
     """
 
     @staticmethod
