@@ -236,6 +236,17 @@ struct Block {
     taps_block<KIND, scalar_t>(u, cnt, W, wrap_u, x);
     taps_block<KIND, scalar_t>(v, cnt, H, wrap_v, y);
   }
+
+  // Point j's taps, unpacked for its texel loop: weights, columns and row
+  // offsets (row times the texture width W).
+  void point(int j, int64_t W, scalar_t* wx, scalar_t* wy, int64_t* cols, int64_t* rows) const {
+    for (int q = 0; q < K; ++q) {
+      wx[q] = static_cast<scalar_t>(x.w[q][j]);
+      wy[q] = static_cast<scalar_t>(y.w[q][j]);
+      cols[q] = x.i[q][j];
+      rows[q] = y.i[q][j] * W;
+    }
+  }
 };
 
 // Prefetches the texel rows of a block's points in the C planes of tex
@@ -290,12 +301,7 @@ void forward_range(int64_t lo, int64_t hi, const Args<scalar_t>& A, scalar_t* ou
       const scalar_t* t = A.tex + (A.Bt == 1 ? 0 : b) * C * A.plane;
       scalar_t wx[K], wy[K];
       int64_t cols[K], rows[K];
-      for (int q = 0; q < K; ++q) {
-        wx[q] = static_cast<scalar_t>(bl.x.w[q][j]);
-        wy[q] = static_cast<scalar_t>(bl.y.w[q][j]);
-        cols[q] = bl.x.i[q][j];
-        rows[q] = bl.y.i[q][j] * A.W;
-      }
+      bl.point(j, A.W, wx, wy, cols, rows);
       for (int64_t c = 0; c < C; ++c) {
         const scalar_t* tc = t + c * A.plane;
         scalar_t sum = 0;
@@ -328,12 +334,7 @@ void backward_block(Block<scalar_t, KIND>& bl, const Args<scalar_t>& A, const sc
     const scalar_t* g = grad + b * C * M + e;
     scalar_t wx[K], wy[K];
     int64_t cols[K], rows[K];
-    for (int q = 0; q < K; ++q) {
-      wx[q] = static_cast<scalar_t>(bl.x.w[q][j]);
-      wy[q] = static_cast<scalar_t>(bl.y.w[q][j]);
-      cols[q] = bl.x.i[q][j];
-      rows[q] = bl.y.i[q][j] * A.W;
-    }
+    bl.point(j, A.W, wx, wy, cols, rows);
     if (KIND != NEAREST && guv != nullptr) {
       const scalar_t* t = A.tex + (A.Bt == 1 ? 0 : b) * C * A.plane;
       scalar_t dx[K], dy[K];
