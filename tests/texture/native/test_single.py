@@ -8,6 +8,12 @@ sums many terms. The texture gradient's scatter by bands of rows
 (csrc/bands.h) runs a class of bands threaded from 1024 points on: cases with more points
 than that check it against the reference, and that one and two threads
 give bit-identical gradients.
+
+float32 bilinear / bicubic reads take an eight-point AVX2 path where the
+CPU has it (``sample_simd``); the float32 tests run on it and on the
+scalar loop (the ``path`` fixture), and one test holds the two to each
+other on the points the eight-point path treats specially (group tails,
+non-finite points inside a group, huge and edge coordinates).
 """
 from __future__ import annotations
 
@@ -26,6 +32,18 @@ BUILT = native.load() is not None
 pytestmark = pytest.mark.skipif(not BUILT, reason="native kernel not built here (no compiler or ninja)")
 WRAPS = ("repeat", "clamp", "mirror", "border")
 TOL = {f32: 1e-5, f64: 1e-12}
+SIMD = BUILT and native.load().sample_simd_available()
+
+
+@pytest.fixture(params=["simd", "scalar"])
+def path(request):
+    """Runs a test on the eight-point AVX2 path (where the CPU has it) and on the scalar loop."""
+    if request.param == "simd" and not SIMD:
+        pytest.skip("this CPU has no AVX2 / FMA: the scalar loop serves")
+    kernel = native.load()
+    before = kernel.sample_simd(request.param == "simd")
+    yield request.param
+    kernel.sample_simd(before)
 
 
 def _inputs(dtype, B=1, Bt=1, C=3, H=7, W=10, Ho=9, Wo=11, seed=0, spread=4.0):
@@ -58,20 +76,21 @@ def _assert_matches(tex, uv, filter, wrap, tol):
 @pytest.mark.parametrize("dtype", [f32, f64], ids=["float32", "float64"])
 @pytest.mark.parametrize("wrap", list(itertools.product(WRAPS, WRAPS)), ids="-".join)
 @pytest.mark.parametrize("filter", ["nearest", "bilinear", "bicubic"])
-def test_the_kernel_gives_the_reference_values_and_gradients(filter, wrap, dtype):
+def test_the_kernel_gives_the_reference_values_and_gradients(filter, wrap, dtype, path):
     tex, uv = _inputs(dtype, seed=hash((filter, wrap)) % 1000)
     _assert_matches(tex, uv, filter, wrap, TOL[dtype])
 
 
 @pytest.mark.parametrize("C", [1, 2, 4])  # 1 and 4 fixed at compile time, 2 at run time
 @pytest.mark.parametrize("B, Bt", [(2, 2), (3, 1)])
-def test_batches_channels_and_non_contiguous_inputs(B, Bt, C):
-    tex, uv = _inputs(f64, B=B, Bt=Bt, C=C, H=6, W=5)
+@pytest.mark.parametrize("dtype", [f32, f64], ids=["float32", "float64"])
+def test_batches_channels_and_non_contiguous_inputs(B, Bt, C, dtype, path):
+    tex, uv = _inputs(dtype, B=B, Bt=Bt, C=C, H=6, W=5)
     tex = tex.transpose(2, 3).contiguous().transpose(2, 3)
     uv = uv.transpose(1, 2).contiguous().transpose(1, 2)
     assert not tex.is_contiguous() and not uv.is_contiguous()
     for filter in ("bilinear", "bicubic"):
-        _assert_matches(tex, uv, filter, ("mirror", "border"), TOL[f64])
+        _assert_matches(tex, uv, filter, ("mirror", "border"), TOL[dtype])
 
 
 @pytest.mark.parametrize("filter", ["bilinear", "bicubic"])
@@ -88,7 +107,7 @@ def test_gradcheck_through_the_kernel(filter, wrap):
 
 
 @pytest.mark.parametrize("filter", ["nearest", "bilinear", "bicubic"])
-def test_a_nan_uv_stays_in_its_pixel(filter):
+def test_a_nan_uv_stays_in_its_pixel(filter, path):
     tex, uv = _inputs(f32, Ho=4, Wo=5)
     uv[0, 1, 2, 0] = float("nan")
     uv[0, 3, 0, 1] = float("inf")
@@ -102,7 +121,7 @@ def test_a_nan_uv_stays_in_its_pixel(filter):
     torch.testing.assert_close(gt, rt, atol=1e-5, rtol=1e-5)
 
 
-def test_huge_and_far_uv_read_as_the_reference():
+def test_huge_and_far_uv_read_as_the_reference(path):
     # float32 uv far outside [0, 1]: the folding (repeat, mirror) and the clamping keep their texels.
     tex, uv = _inputs(f32, Ho=3, Wo=4)
     uv[0, 0] = torch.tensor([[1e30, -1e30], [3e7 + 0.25, -5e6 - 0.75], [-20.3, 41.6], [1e-30, 1 - 1e-7]])
@@ -110,6 +129,38 @@ def test_huge_and_far_uv_read_as_the_reference():
         out, *_ = _read("native", tex, uv, filter, wrap)
         ref, *_ = _read("reference", tex, uv, filter, wrap)
         torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-5, msg=lambda m: f"{filter} {wrap}: {m}")
+
+
+@pytest.mark.skipif(not SIMD, reason="this CPU has no AVX2 / FMA")
+@pytest.mark.parametrize("filter", ["bilinear", "bicubic"])
+def test_the_eight_point_path_reads_as_the_scalar_loop_and_the_reference(filter):
+    # 3 x 45 points: groups of eight and a tail of five per batch entry, a NaN and an inf inside groups (that
+    # group goes through the scalar loop), coordinates on texel centres and edges, just below 0 and 1, huge.
+    tex, uv = _inputs(f32, B=3, Bt=3, C=5, H=9, W=6, Ho=5, Wo=9, seed=11)
+    special = torch.tensor([[0.5 / 6, 0.5 / 9], [1 / 6, 1 / 9], [-1e-9, 1 - 1e-7], [1e30, -1e30], [-1.0, 2.0],
+                            [3e7 + 0.25, -5e6 - 0.75], [-2.0 - 1 / 6, 3.5], [1e-30, -1e-30]])
+    uv[1, 1, :8] = special
+    uv[0, 2, 3, 0] = float("nan")
+    uv[2, 4, 1, 1] = float("inf")
+    kernel = native.load()
+    for wrap in itertools.product(WRAPS, WRAPS):
+        got = {}
+        for simd in (True, False):
+            before = kernel.sample_simd(simd)
+            try:
+                got[simd] = _read("native", tex, uv, filter, wrap)
+            finally:
+                kernel.sample_simd(before)
+        ref = list(_read("reference", tex, uv, filter, wrap))
+        ok = torch.isfinite(uv).all(-1, keepdim=True)
+        ref[2] = torch.where(ok, ref[2], 0.0)  # the reference's uv gradient is NaN there, the kernel's 0
+        for name, a, b, r in zip(("values", "texture gradient", "uv gradient"), got[True], got[False], ref):
+            s = max(1.0, r.abs().max().item())
+            msg = lambda m: f"{wrap} {name}: {m}"  # noqa: E731
+            torch.testing.assert_close(a, r, atol=1e-5 * s, rtol=1e-5, equal_nan=True, msg=msg)
+            torch.testing.assert_close(a, b, atol=1e-5 * s, rtol=1e-5, equal_nan=True, msg=msg)
+        assert torch.isnan(got[True][0][0, :, 2, 3]).all() and torch.isnan(got[True][0][2, :, 4, 1]).all()
+        assert torch.isfinite(got[True][0][0, :, 2, 2]).all() and torch.isfinite(got[True][0][0, :, 2, 4]).all()
 
 
 def _threads(n, fn):

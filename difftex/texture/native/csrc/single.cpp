@@ -7,8 +7,10 @@
 // floor(x) + 2 with the Keys kernel (a = kCubicA, grid_sample's), every
 // index wrapped per axis as wrap.py does.
 //
-// Bilinear and bicubic fold u into one period first (common.h fold, as the
-// mip taps do), in double: the same texels as the integer wrap. Nearest
+// Bilinear and bicubic take u into one period in double (repeat: u - floor(u);
+// mirror: reduce_coordinate's whole periods of 2, then the integer mirror of
+// each tap, which keeps the reference's one-sided derivative at a texel
+// centre): the same texels as the integer wrap. Nearest
 // follows the reference step by step in the input's dtype
 // (reduce_coordinate, then the rounding), so that a point on a texel edge
 // rounds to the same side. Texel arithmetic is in the texture's dtype, with
@@ -21,6 +23,11 @@
 #include "bands.h"
 #include "common.h"
 #include "kernels.h"
+
+#include <atomic>
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#include <immintrin.h>
+#endif
 
 namespace difftex {
 namespace {
@@ -137,27 +144,30 @@ void taps_near(const double* x, int cnt, int64_t n, Taps<taps_of<KIND>()>& T) {
   const double nd = static_cast<double>(n);
   const int32_t ni = static_cast<int32_t>(n);
   for (int j = 0; j < cnt; ++j) {
-    double u = x[j], slope = 1.0;
+    double u = x[j];
     if (MODE == REPEAT) {
       u = u - floor_near(u);
-    } else if (MODE == MIRROR) {
-      const double h = 0.5 * u, f = h - floor_near(h);
-      u = 1.0 - std::fabs(2.0 * f - 1.0);
-      slope = 1.0 - 2.0 * static_cast<double>(f >= 0.5);
+    } else if (MODE == MIRROR && std::fabs(u) >= 2.0) {
+      // reduce_coordinate's whole periods only, and the integer mirror below: folding u itself would flip the side
+      // of the one-sided derivative at a texel centre of a reflected copy (the reference takes it from the right
+      // in u).
+      u = u - 2.0 * floor_near(0.5 * u);
     }
     double c = u * nd - 0.5;
     if (MODE == CLAMP || MODE == BORDER) c = std::min(std::max(c, -kBig), kBig);
     const double c0 = floor_near(c), t = c - c0;
     const int32_t i = static_cast<int32_t>(c0);
-    T.slope[j] = slope;
+    T.slope[j] = 1.0;
     for (int q = 0; q < K; ++q) {
       int32_t r = i + q - (K == 4 ? 1 : 0);
       bool in = true;
       if (MODE == REPEAT) {  // r in [-2, n + 1]: one period off at most (n = 1: clamped below)
         r += r < 0 ? ni : 0;
         r -= r >= ni ? ni : 0;
-      } else if (MODE == MIRROR) {
-        r = r < 0 ? -1 - r : r;
+      } else if (MODE == MIRROR) {  // r in [-2n - 2, 2n + 1]: into one period 2n, the second copy reflected
+        r += r < 0 ? 2 * ni : 0;
+        r += r < 0 ? 2 * ni : 0;
+        r -= r >= 2 * ni ? 2 * ni : 0;
         r = r >= ni ? 2 * ni - 1 - r : r;
       } else if (MODE == BORDER) {
         in = r >= 0 && r < ni;
@@ -377,6 +387,187 @@ void backward_block(Block<scalar_t, KIND>& bl, const Args<scalar_t>& A, const sc
   }
 }
 
+// ---------------------------------------------------------------------------
+// The float32 bilinear / bicubic reads eight points at a time (AVX2), where
+// the CPU has AVX2 and FMA (checked at run time; the scalar loops above
+// serve elsewhere, for float64, and for groups of eight holding a
+// non-finite coordinate). Measured against the scalar loop: the per-point
+// tap arithmetic and the one-texel-at-a-time loads were most of its time,
+// even for a texture in L1 (3.9 of 7.5 ms for 512^2 points on 2 threads).
+// Eight points' taps are computed in vector registers, each tap's texels
+// of the eight points come in one gather, and a channel's eight results
+// are one store into the planar output.
+//
+// The arithmetic is float32 throughout and follows the gather reference
+// step by step (reduce_coordinate, x = u * n - 0.5 in the input's dtype,
+// floor, the integer wrap of each tap), so both read the same texels with
+// the same weights; clamp and border clip x to [-3, n + 2], where every
+// tap is already off the texture on that side (the same texels, whatever
+// the distance). Products and sums are not fused, so the blend rounds as
+// the reference's does.
+// ---------------------------------------------------------------------------
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#define DT_HAVE_AVX2 1
+#define DT_AVX2 __attribute__((target("avx2,fma"), always_inline)) inline
+
+// One axis of eight points: K tap indices (wrapped), whether each reads a
+// texel (border: not the constant; all ones elsewhere), their weights and
+// d weight / d texel coordinate. The integer wrap makes d x / du = n on
+// every mode (no fold slope).
+template <int K>
+struct Axis8 {
+  __m256i i[K], in[K];
+  __m256 w[K], dw[K];
+};
+
+// The Keys cubic (cubic_near / cubic_far above) of eight points in float32, by Horner's scheme as the
+// reference evaluates it.
+constexpr float kA = static_cast<float>(kCubicA);
+DT_AVX2 __m256 near8(__m256 s) {  // ((A + 2) s - (A + 3)) s s + 1
+  const __m256 p = _mm256_sub_ps(_mm256_mul_ps(_mm256_set1_ps(kA + 2), s), _mm256_set1_ps(kA + 3));
+  return _mm256_add_ps(_mm256_mul_ps(_mm256_mul_ps(p, s), s), _mm256_set1_ps(1.0f));
+}
+DT_AVX2 __m256 near_d8(__m256 s) {  // (3 (A + 2) s - 2 (A + 3)) s
+  return _mm256_mul_ps(_mm256_sub_ps(_mm256_mul_ps(_mm256_set1_ps(3 * (kA + 2)), s), _mm256_set1_ps(2 * (kA + 3))), s);
+}
+DT_AVX2 __m256 far8(__m256 s) {  // ((A s - 5A) s + 8A) s - 4A
+  __m256 p = _mm256_sub_ps(_mm256_mul_ps(_mm256_set1_ps(kA), s), _mm256_set1_ps(5 * kA));
+  p = _mm256_add_ps(_mm256_mul_ps(p, s), _mm256_set1_ps(8 * kA));
+  return _mm256_sub_ps(_mm256_mul_ps(p, s), _mm256_set1_ps(4 * kA));
+}
+DT_AVX2 __m256 far_d8(__m256 s) {  // (3A s - 10A) s + 8A
+  const __m256 p = _mm256_sub_ps(_mm256_mul_ps(_mm256_set1_ps(3 * kA), s), _mm256_set1_ps(10 * kA));
+  return _mm256_add_ps(_mm256_mul_ps(p, s), _mm256_set1_ps(8 * kA));
+}
+
+template <int K>
+DT_AVX2 void axis8(__m256 u, int32_t n, int mode, Axis8<K>& a) {
+  const __m256 one = _mm256_set1_ps(1.0f), half = _mm256_set1_ps(0.5f), nf = _mm256_set1_ps(static_cast<float>(n));
+  if (mode == REPEAT || mode == MIRROR) {  // reduce_coordinate: whole periods off where |u| >= one period
+    const __m256 p = _mm256_set1_ps(mode == REPEAT ? 1.0f : 2.0f), inv = _mm256_set1_ps(mode == REPEAT ? 1.0f : 0.5f);
+    const __m256 r = _mm256_sub_ps(u, _mm256_mul_ps(p, _mm256_floor_ps(_mm256_mul_ps(u, inv))));  // u / p exactly
+    u = _mm256_blendv_ps(u, r, _mm256_cmp_ps(_mm256_andnot_ps(_mm256_set1_ps(-0.0f), u), p, _CMP_GE_OQ));
+  }
+  __m256 x = _mm256_sub_ps(_mm256_mul_ps(u, nf), half);
+  if (mode == CLAMP || mode == BORDER)
+    x = _mm256_min_ps(_mm256_max_ps(x, _mm256_set1_ps(-3.0f)), _mm256_add_ps(nf, _mm256_set1_ps(2.0f)));
+  const __m256 x0 = _mm256_floor_ps(x), t = _mm256_sub_ps(x, x0);
+  const __m256i i = _mm256_cvttps_epi32(x0), ni = _mm256_set1_epi32(n), zero = _mm256_setzero_si256();
+  const __m256i last = _mm256_set1_epi32(n - 1), all = _mm256_set1_epi32(-1);
+  for (int q = 0; q < K; ++q) {
+    __m256i r = _mm256_add_epi32(i, _mm256_set1_epi32(q - (K == 4 ? 1 : 0)));
+    __m256i in = all;
+    const __m256i below = _mm256_cmpgt_epi32(zero, r);
+    if (mode == REPEAT || mode == MIRROR) {  // r in [-P - 2, P + 1] for the period P = n (repeat), 2n (mirror)
+      const __m256i P = mode == REPEAT ? ni : _mm256_add_epi32(ni, ni);
+      r = _mm256_add_epi32(r, _mm256_and_si256(below, P));
+      r = _mm256_add_epi32(r, _mm256_and_si256(_mm256_cmpgt_epi32(zero, r), P));
+      r = _mm256_sub_epi32(r, _mm256_andnot_si256(_mm256_cmpgt_epi32(P, r), P));
+      if (mode == MIRROR)  // the second copy reflected
+        r = _mm256_blendv_epi8(_mm256_sub_epi32(_mm256_set1_epi32(2 * n - 1), r), r, _mm256_cmpgt_epi32(ni, r));
+    } else if (mode == BORDER) {
+      in = _mm256_andnot_si256(_mm256_or_si256(below, _mm256_cmpgt_epi32(r, last)), all);
+    }
+    a.i[q] = _mm256_min_epi32(_mm256_max_epi32(r, zero), last);
+    a.in[q] = in;
+  }
+  if constexpr (K == 2) {
+    a.w[0] = _mm256_sub_ps(one, t); a.w[1] = t;
+    a.dw[0] = _mm256_set1_ps(-1.0f); a.dw[1] = one;
+  } else {
+    const __m256 t1 = _mm256_add_ps(t, one), s1 = _mm256_sub_ps(one, t), s2 = _mm256_sub_ps(_mm256_set1_ps(2.0f), t);
+    a.w[0] = far8(t1); a.w[1] = near8(t); a.w[2] = near8(s1); a.w[3] = far8(s2);
+    const __m256 neg = _mm256_set1_ps(-0.0f);
+    a.dw[0] = far_d8(t1); a.dw[1] = near_d8(t);
+    a.dw[2] = _mm256_xor_ps(near_d8(s1), neg); a.dw[3] = _mm256_xor_ps(far_d8(s2), neg);
+  }
+}
+
+// Eight points' (u, v) from interleaved uv; false where any is not finite.
+DT_AVX2 bool load8(const float* uv, __m256& u, __m256& v) {
+  const __m256 a = _mm256_loadu_ps(uv), b = _mm256_loadu_ps(uv + 8);
+  u = _mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(_mm256_shuffle_ps(a, b, 0x88)), 0xD8));
+  v = _mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(_mm256_shuffle_ps(a, b, 0xDD)), 0xD8));
+  // x - x is 0 for finite x, NaN for inf and NaN.
+  const __m256 z = _mm256_add_ps(_mm256_sub_ps(u, u), _mm256_sub_ps(v, v));
+  return _mm256_movemask_ps(_mm256_cmp_ps(z, _mm256_setzero_ps(), _CMP_EQ_OQ)) == 0xFF;
+}
+
+// Texels of tap (r, q) of eight points in one plane; border taps read the constant.
+template <bool kBorder, int K>
+DT_AVX2 __m256 texels8(const float* plane, const __m256i* rows, const Axis8<K>& ax, const Axis8<K>& ay, int r, int q,
+                       __m256 border) {
+  const __m256i idx = _mm256_add_epi32(rows[r], ax.i[q]);
+  if (!kBorder) return _mm256_i32gather_ps(plane, idx, 4);
+  const __m256 m = _mm256_castsi256_ps(_mm256_and_si256(ay.in[r], ax.in[q]));
+  return _mm256_mask_i32gather_ps(border, plane, idx, m, 4);
+}
+
+// The forward of the eight points at uv (finite) into o[c * M] (c < C).
+template <int K, int CC, bool kBorder>
+__attribute__((target("avx2,fma"))) void forward8(const Args<float>& A, const float* tex, __m256 u, __m256 v, float* o,
+                                                  int64_t M) {
+  const int64_t C = CC > 0 ? CC : A.C;
+  Axis8<K> ax, ay;
+  axis8<K>(u, static_cast<int32_t>(A.W), A.wrap_u, ax);
+  axis8<K>(v, static_cast<int32_t>(A.H), A.wrap_v, ay);
+  __m256i rows[K];
+  const __m256i W = _mm256_set1_epi32(static_cast<int32_t>(A.W));
+  for (int r = 0; r < K; ++r) rows[r] = _mm256_mullo_epi32(ay.i[r], W);
+  const __m256 border = _mm256_set1_ps(A.border);
+  for (int64_t c = 0; c < C; ++c) {
+    const float* plane = tex + c * A.plane;
+    __m256 sum = _mm256_setzero_ps();
+    for (int r = 0; r < K; ++r) {
+      __m256 acc = _mm256_setzero_ps();
+      for (int q = 0; q < K; ++q)
+        acc = _mm256_add_ps(acc, _mm256_mul_ps(ax.w[q], texels8<kBorder>(plane, rows, ax, ay, r, q, border)));
+      sum = _mm256_add_ps(sum, _mm256_mul_ps(ay.w[r], acc));
+    }
+    _mm256_storeu_ps(o + c * M, sum);
+  }
+}
+
+// forward_range of points [lo, hi) by groups of eight within each batch entry; the scalar loop takes the rest.
+template <int KIND, int CC, bool kBorder>
+__attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t hi, const Args<float>& A,
+                                                            float* out) {
+  constexpr int K = taps_of<KIND>();
+  const int64_t C = CC > 0 ? CC : A.C, M = A.M;
+  for (int64_t p = lo; p < hi;) {
+    const int64_t b = p / M, end = std::min(hi, (b + 1) * M);
+    const float* tex = A.tex + (A.Bt == 1 ? 0 : b) * C * A.plane;
+    float* o = out + b * C * M - b * M;  // o[p] is point p's first channel
+    int64_t q = p;
+    for (; q + 8 <= end; q += 8) {
+      __m256 u, v;
+      if (load8(A.uv + 2 * q, u, v))
+        forward8<K, CC, kBorder>(A, tex, u, v, o + q, M);
+      else
+        forward_range<float, KIND, CC, kBorder>(q, q + 8, A, out);
+    }
+    if (q < end) forward_range<float, KIND, CC, kBorder>(q, end, A, out);
+    p = end;
+  }
+}
+
+bool cpu_has_avx2() {
+  static const bool has = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+  return has;
+}
+#else
+#define DT_HAVE_AVX2 0
+bool cpu_has_avx2() { return false; }
+#endif
+
+std::atomic<bool> g_simd{true};
+
+// Whether a float32 read of this kind and texture goes through the eight-point path.
+bool simd_read(int64_t kind, const torch::Tensor& texture) {
+  return DT_HAVE_AVX2 && g_simd.load() && cpu_has_avx2() && kind != NEAREST &&
+         texture.scalar_type() == torch::kFloat32 && texture.size(2) * texture.size(3) < (int64_t(1) << 31);
+}
+
 template <typename scalar_t>
 Args<scalar_t> args_of(const torch::Tensor& texture, const torch::Tensor& uv, const ReadOptions& opts) {
   Args<scalar_t> A;
@@ -418,13 +609,21 @@ torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, cons
   check_inputs(texture, uv, kind);
   const int64_t B = uv.size(0), C = texture.size(1), M = uv.size(1);
   auto out = torch::empty({B, C, M}, uv.options());
+  const bool simd = simd_read(kind, texture);
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "sample_forward", [&] {
     const Args<scalar_t> A = args_of<scalar_t>(texture, uv, opts);
     scalar_t* po = out.data_ptr<scalar_t>();
     with_kind(kind, [&](auto k) {
       specialized(C, opts.wrap_u, opts.wrap_v, [&](auto cc, auto border_) {
+        constexpr int KIND = decltype(k)::value, CC = decltype(cc)::value;
+        constexpr bool kB = decltype(border_)::value;
         at::parallel_for(0, B * M, 2048, [&](int64_t lo, int64_t hi) {
-          forward_range<scalar_t, decltype(k)::value, decltype(cc)::value, decltype(border_)::value>(lo, hi, A, po);
+#if DT_HAVE_AVX2
+          if constexpr (std::is_same_v<scalar_t, float> && KIND != NEAREST) {
+            if (simd) return forward_range_avx2<KIND, CC, kB>(lo, hi, A, po);
+          }
+#endif
+          forward_range<scalar_t, KIND, CC, kB>(lo, hi, A, po);
         });
       });
     });
@@ -503,5 +702,9 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
   });
   return {gt, guv};
 }
+
+bool sample_simd(bool enabled) { return g_simd.exchange(enabled); }
+
+bool sample_simd_available() { return DT_HAVE_AVX2 && cpu_has_avx2(); }
 
 }  // namespace difftex
