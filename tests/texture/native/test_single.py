@@ -10,7 +10,7 @@ than that check it against the reference, and that one and two threads
 give bit-identical gradients.
 
 float32 bilinear / bicubic reads take an eight-point AVX2 path where the
-CPU has it (``sample_simd``); the float32 tests run on it and on the
+CPU has it (``set_simd``); the float32 tests run on it and on the
 scalar loop (the ``path`` fixture), and one test holds the two to each
 other on the points the eight-point path treats specially (group tails,
 non-finite points inside a group, huge and edge coordinates).
@@ -32,7 +32,7 @@ BUILT = native.load() is not None
 pytestmark = pytest.mark.skipif(not BUILT, reason="native kernel not built here (no compiler or ninja)")
 WRAPS = ("repeat", "clamp", "mirror", "border")
 TOL = {f32: 1e-5, f64: 1e-12}
-SIMD = BUILT and native.load().sample_simd_available()
+SIMD = BUILT and native.load().simd_available()
 
 
 @pytest.fixture(params=["simd", "scalar"])
@@ -41,9 +41,9 @@ def path(request):
     if request.param == "simd" and not SIMD:
         pytest.skip("this CPU has no AVX2 / FMA: the scalar loop serves")
     kernel = native.load()
-    before = kernel.sample_simd(request.param == "simd")
+    before = kernel.set_simd(request.param == "simd")
     yield request.param
-    kernel.sample_simd(before)
+    kernel.set_simd(before)
 
 
 def _inputs(dtype, B=1, Bt=1, C=3, H=7, W=10, Ho=9, Wo=11, seed=0, spread=4.0):
@@ -146,11 +146,11 @@ def test_the_eight_point_path_reads_as_the_scalar_loop_and_the_reference(filter)
     for wrap in itertools.product(WRAPS, WRAPS):
         got = {}
         for simd in (True, False):
-            before = kernel.sample_simd(simd)
+            before = kernel.set_simd(simd)
             try:
                 got[simd] = _read("native", tex, uv, filter, wrap)
             finally:
-                kernel.sample_simd(before)
+                kernel.set_simd(before)
         ref = list(_read("reference", tex, uv, filter, wrap))
         ok = torch.isfinite(uv).all(-1, keepdim=True)
         ref[2] = torch.where(ok, ref[2], 0.0)  # the reference's uv gradient is NaN there, the kernel's 0
@@ -161,6 +161,48 @@ def test_the_eight_point_path_reads_as_the_scalar_loop_and_the_reference(filter)
             torch.testing.assert_close(a, b, atol=1e-5 * s, rtol=1e-5, equal_nan=True, msg=msg)
         assert torch.isnan(got[True][0][0, :, 2, 3]).all() and torch.isnan(got[True][0][2, :, 4, 1]).all()
         assert torch.isfinite(got[True][0][0, :, 2, 2]).all() and torch.isfinite(got[True][0][0, :, 2, 4]).all()
+
+
+@pytest.mark.skipif(not SIMD, reason="this CPU has no AVX2 / FMA")
+@pytest.mark.parametrize("filter", ["trilinear", "nearest-mip"])
+def test_the_eight_point_taps_read_as_the_scalar_loop_and_the_reference(filter):
+    # 2 x 12 x 16 points on a 20 x 24 texture: the first rows share one footprint (groups of eight on the same
+    # levels: the eight-point path), the others have a random one each (groups on mixed levels: the scalar
+    # loop); a NaN inside a group; gradients to texture, uv and both derivatives (through the level).
+    g = torch.Generator().manual_seed(5)
+    tex = torch.rand(2, 3, 20, 24, generator=g)
+    uv = torch.rand(2, 12, 16, 2, generator=g) * 3 - 1
+    dx = torch.randn(2, 12, 16, 2, generator=g) * 0.1
+    dy = torch.randn(2, 12, 16, 2, generator=g) * 0.1
+    dx[:, :6], dy[:, :6] = dx[:, :1, :1].clone(), dy[:, :1, :1].clone()
+    uv[1, 3, 4, 1] = float("nan")
+    kernel = native.load()
+
+    def read(backend, simd, wrap):
+        before = kernel.set_simd(simd)
+        try:
+            ins = [t.detach().clone().requires_grad_() for t in (tex, uv, dx, dy)]
+            with use_backend(backend):
+                out = difftex.sample(ins[0], ins[1], uv_dx=ins[2], uv_dy=ins[3], filter=filter, wrap=wrap,
+                                     border_value=0.25)
+            w = torch.randn(out.shape, generator=torch.Generator().manual_seed(7))
+            grads = torch.autograd.grad((out.nan_to_num() * w).sum(), ins, allow_unused=True)
+            return [out.detach()] + [torch.zeros_like(t) if gr is None else gr for t, gr in zip(ins, grads)]
+        finally:
+            kernel.set_simd(before)
+
+    ok = torch.isfinite(uv).all(-1, keepdim=True)
+    for wrap in (("repeat", "mirror"), ("mirror", "clamp"), ("border", "repeat"), ("clamp", "border")):
+        fast, slow, ref = read("native", True, wrap), read("native", False, wrap), read("reference", True, wrap)
+        names = ("values", "texture gradient", "uv gradient", "uv_dx gradient", "uv_dy gradient")
+        for name, a, b, r in zip(names, fast, slow, ref):
+            if name != "values" and name != "texture gradient":
+                r = torch.where(ok, r, 0.0)  # NaN on the reference at the NaN point, 0 on the kernel
+            s = max(1.0, r.abs().max().item())
+            msg = lambda m: f"{wrap} {name}: {m}"  # noqa: E731
+            torch.testing.assert_close(a, b, atol=1e-6 * s, rtol=1e-6, equal_nan=True, msg=msg)
+            torch.testing.assert_close(a, r, atol=1e-5 * s, rtol=1e-5, equal_nan=True, msg=msg)
+        assert torch.isnan(fast[0][1, :, 3, 4]).all() and torch.isfinite(fast[0][1, :, 3, 5]).all()
 
 
 def _threads(n, fn):

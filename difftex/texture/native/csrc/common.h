@@ -26,6 +26,7 @@
 #include <torch/extension.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -265,5 +266,28 @@ void specialized(int64_t C, int64_t wrap_u, int64_t wrap_v, F&& f) {
     default: with_border(std::integral_constant<int, 0>());
   }
 }
+
+// The eight-point AVX2 paths of the float32 reads (single.cpp, taps.cpp):
+// whether this build has them (x86-64, GCC / Clang), whether this CPU runs
+// them (AVX2 and FMA, checked once at run time) and the switch the tests
+// turn (kernels.h set_simd).
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#define DT_HAVE_AVX2 1
+#define DT_AVX2 __attribute__((target("avx2,fma"), always_inline)) inline
+inline bool cpu_has_avx2() {
+  static const bool has = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+  return has;
+}
+#else
+#define DT_HAVE_AVX2 0
+inline bool cpu_has_avx2() { return false; }
+#endif
+
+inline std::atomic<bool>& simd_switch() {
+  static std::atomic<bool> on{true};
+  return on;
+}
+
+inline bool simd_on() { return DT_HAVE_AVX2 && cpu_has_avx2() && simd_switch().load(); }
 
 }  // namespace difftex

@@ -94,10 +94,12 @@ torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, cons
 std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, torch::Tensor uv, torch::Tensor grad,
                                                          int64_t kind, const ReadOptions& opts, bool need_texture,
                                                          bool need_uv);
-// Whether float32 bilinear / bicubic reads use the eight-point AVX2 path
-// (on by default where the CPU has it); sets it, returns the previous
-// setting. The tests run both paths against the reference.
-bool sample_simd(bool enabled);
-bool sample_simd_available();
+// Whether float32 reads (single.cpp's bilinear / bicubic, taps.cpp's one
+// tap a point) use the eight-point AVX2 paths, on by default where the CPU
+// has them: set_simd sets it and returns the previous setting (the tests
+// run both paths against the reference); simd_available says whether this
+// CPU has them.
+bool set_simd(bool enabled);
+bool simd_available();
 
 }  // namespace difftex

@@ -106,9 +106,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("sample_backward", &sample_backward, "nearest / bilinear / bicubic read of one level, first-order backward",
         py::arg("texture"), py::arg("uv"), py::arg("grad"), py::arg("kind"), py::arg("opts"), py::kw_only(),
         py::arg("need_texture"), py::arg("need_uv"));
-  m.def("sample_simd", &sample_simd, "use the eight-point AVX2 path for float32 reads (default on); returns the previous setting",
+  m.def("set_simd", &set_simd, "use the eight-point AVX2 paths for float32 reads (default on); returns the previous setting",
         py::arg("enabled"));
-  m.def("sample_simd_available", &sample_simd_available, "whether this CPU runs the eight-point AVX2 path");
+  m.def("simd_available", &simd_available, "whether this CPU runs the eight-point AVX2 paths");
   py::dict kinds;
   kinds["nearest"] = 0;
   kinds["linear"] = 1;

@@ -24,8 +24,7 @@
 #include "common.h"
 #include "kernels.h"
 
-#include <atomic>
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#if DT_HAVE_AVX2
 #include <immintrin.h>
 #endif
 
@@ -406,9 +405,7 @@ void backward_block(Block<scalar_t, KIND>& bl, const Args<scalar_t>& A, const sc
 // the distance). Products and sums are not fused, so the blend rounds as
 // the reference's does.
 // ---------------------------------------------------------------------------
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-#define DT_HAVE_AVX2 1
-#define DT_AVX2 __attribute__((target("avx2,fma"), always_inline)) inline
+#if DT_HAVE_AVX2
 
 // One axis of eight points: K tap indices (wrapped), whether each reads a
 // texel (border: not the constant; all ones elsewhere), their weights and
@@ -483,37 +480,61 @@ DT_AVX2 void axis8(__m256 u, int32_t n, int mode, Axis8<K>& a) {
   }
 }
 
+// Whether the eight points' u and v are all finite (x - x is 0 for finite x, NaN for inf and NaN).
+DT_AVX2 bool finite8(__m256 u, __m256 v) {
+  const __m256 z = _mm256_add_ps(_mm256_sub_ps(u, u), _mm256_sub_ps(v, v));
+  return _mm256_movemask_ps(_mm256_cmp_ps(z, _mm256_setzero_ps(), _CMP_EQ_OQ)) == 0xFF;
+}
+
 // Eight points' (u, v) from interleaved uv; false where any is not finite.
 DT_AVX2 bool load8(const float* uv, __m256& u, __m256& v) {
   const __m256 a = _mm256_loadu_ps(uv), b = _mm256_loadu_ps(uv + 8);
   u = _mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(_mm256_shuffle_ps(a, b, 0x88)), 0xD8));
   v = _mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(_mm256_shuffle_ps(a, b, 0xDD)), 0xD8));
-  // x - x is 0 for finite x, NaN for inf and NaN.
-  const __m256 z = _mm256_add_ps(_mm256_sub_ps(u, u), _mm256_sub_ps(v, v));
-  return _mm256_movemask_ps(_mm256_cmp_ps(z, _mm256_setzero_ps(), _CMP_EQ_OQ)) == 0xFF;
+  return finite8(u, v);
 }
 
-// Texels of tap (r, q) of eight points in one plane; border taps read the constant.
+// A group of eight points ready to read: both axes' taps and the taps' row offsets (row times W).
+template <int K>
+struct Group8 {
+  Axis8<K> ax, ay;
+  __m256i rows[K];
+};
+
+template <int K>
+DT_AVX2 void prepare8(const Args<float>& A, __m256 u, __m256 v, Group8<K>& g) {
+  axis8<K>(u, static_cast<int32_t>(A.W), A.wrap_u, g.ax);
+  axis8<K>(v, static_cast<int32_t>(A.H), A.wrap_v, g.ay);
+  const __m256i W = _mm256_set1_epi32(static_cast<int32_t>(A.W));
+  for (int r = 0; r < K; ++r) g.rows[r] = _mm256_mullo_epi32(g.ay.i[r], W);
+}
+
+// Prefetches the lines of a group's taps in C planes from base (kWrite: to write them, the texture gradient),
+// as prefetch_block does for the scalar loop: a block's groups are prepared and prefetched first, then read,
+// so that their misses overlap (measured: the backward without it waited on memory for most of its time).
+template <int K, bool kWrite>
+DT_AVX2 void prefetch8(const Group8<K>& g, const float* base, int64_t C, int64_t plane) {
+  alignas(32) int32_t o[K][8];
+  for (int r = 0; r < K; ++r)
+    _mm256_store_si256(reinterpret_cast<__m256i*>(o[r]), _mm256_add_epi32(g.rows[r], g.ax.i[0]));
+  for (int j = 0; j < 8; ++j)
+    for (int r = 0; r < K; ++r)
+      for (int64_t c = 0; c < C; ++c) DT_PREFETCH(base + c * plane + o[r][j], kWrite);
+}
+
+// Texels of tap (r, q) of a group in one plane; border taps read the constant.
 template <bool kBorder, int K>
-DT_AVX2 __m256 texels8(const float* plane, const __m256i* rows, const Axis8<K>& ax, const Axis8<K>& ay, int r, int q,
-                       __m256 border) {
-  const __m256i idx = _mm256_add_epi32(rows[r], ax.i[q]);
+DT_AVX2 __m256 texels8(const float* plane, const Group8<K>& g, int r, int q, __m256 border) {
+  const __m256i idx = _mm256_add_epi32(g.rows[r], g.ax.i[q]);
   if (!kBorder) return _mm256_i32gather_ps(plane, idx, 4);
-  const __m256 m = _mm256_castsi256_ps(_mm256_and_si256(ay.in[r], ax.in[q]));
+  const __m256 m = _mm256_castsi256_ps(_mm256_and_si256(g.ay.in[r], g.ax.in[q]));
   return _mm256_mask_i32gather_ps(border, plane, idx, m, 4);
 }
 
-// The forward of the eight points at uv (finite) into o[c * M] (c < C).
+// The forward of a group from texture tex into o[c * M] (c < C).
 template <int K, int CC, bool kBorder>
-__attribute__((target("avx2,fma"))) void forward8(const Args<float>& A, const float* tex, __m256 u, __m256 v, float* o,
-                                                  int64_t M) {
+DT_AVX2 void forward8(const Args<float>& A, const Group8<K>& g, const float* tex, float* o, int64_t M) {
   const int64_t C = CC > 0 ? CC : A.C;
-  Axis8<K> ax, ay;
-  axis8<K>(u, static_cast<int32_t>(A.W), A.wrap_u, ax);
-  axis8<K>(v, static_cast<int32_t>(A.H), A.wrap_v, ay);
-  __m256i rows[K];
-  const __m256i W = _mm256_set1_epi32(static_cast<int32_t>(A.W));
-  for (int r = 0; r < K; ++r) rows[r] = _mm256_mullo_epi32(ay.i[r], W);
   const __m256 border = _mm256_set1_ps(A.border);
   for (int64_t c = 0; c < C; ++c) {
     const float* plane = tex + c * A.plane;
@@ -521,50 +542,164 @@ __attribute__((target("avx2,fma"))) void forward8(const Args<float>& A, const fl
     for (int r = 0; r < K; ++r) {
       __m256 acc = _mm256_setzero_ps();
       for (int q = 0; q < K; ++q)
-        acc = _mm256_add_ps(acc, _mm256_mul_ps(ax.w[q], texels8<kBorder>(plane, rows, ax, ay, r, q, border)));
-      sum = _mm256_add_ps(sum, _mm256_mul_ps(ay.w[r], acc));
+        acc = _mm256_add_ps(acc, _mm256_mul_ps(g.ax.w[q], texels8<kBorder>(plane, g, r, q, border)));
+      sum = _mm256_add_ps(sum, _mm256_mul_ps(g.ay.w[r], acc));
     }
     _mm256_storeu_ps(o + c * M, sum);
   }
 }
 
-// forward_range of points [lo, hi) by groups of eight within each batch entry; the scalar loop takes the rest.
+constexpr int kGroups = kBlock / 8;  // groups of a block
+
+// forward_range of points [lo, hi), within each batch entry by blocks of groups of eight (a group holding a
+// non-finite coordinate, and the tail, through the scalar loop).
 template <int KIND, int CC, bool kBorder>
 __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t hi, const Args<float>& A,
                                                             float* out) {
   constexpr int K = taps_of<KIND>();
   const int64_t C = CC > 0 ? CC : A.C, M = A.M;
+  Group8<K> grp[kGroups];
+  bool ok[kGroups];
   for (int64_t p = lo; p < hi;) {
     const int64_t b = p / M, end = std::min(hi, (b + 1) * M);
     const float* tex = A.tex + (A.Bt == 1 ? 0 : b) * C * A.plane;
     float* o = out + b * C * M - b * M;  // o[p] is point p's first channel
     int64_t q = p;
-    for (; q + 8 <= end; q += 8) {
-      __m256 u, v;
-      if (load8(A.uv + 2 * q, u, v))
-        forward8<K, CC, kBorder>(A, tex, u, v, o + q, M);
-      else
-        forward_range<float, KIND, CC, kBorder>(q, q + 8, A, out);
+    while (q + 8 <= end) {
+      const int n = static_cast<int>(std::min<int64_t>(kGroups, (end - q) / 8));
+      for (int i = 0; i < n; ++i) {
+        __m256 u, v;
+        ok[i] = load8(A.uv + 2 * (q + 8 * i), u, v);
+        if (!ok[i]) continue;
+        prepare8<K>(A, u, v, grp[i]);
+        prefetch8<K, false>(grp[i], tex, C, A.plane);
+      }
+      for (int i = 0; i < n; ++i, q += 8) {
+        if (ok[i])
+          forward8<K, CC, kBorder>(A, grp[i], tex, o + q, M);
+        else
+          forward_range<float, KIND, CC, kBorder>(q, q + 8, A, out);
+      }
     }
     if (q < end) forward_range<float, KIND, CC, kBorder>(q, end, A, out);
     p = end;
   }
 }
 
-bool cpu_has_avx2() {
-  static const bool has = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
-  return has;
+// The backward of a group of eight points p[0..8) (any indices into [B * M] on one texture, tb its offset):
+// uv gradients into guv (not null), texture gradients scattered into gt (not null). The taps, the uv gradient
+// and each tap's share of the output gradient come eight points at a time; the scatter adds the shares one
+// point after another in the scalar loop's order (the sums equal at any thread count, bands.h).
+template <int K, int CC, bool kBorder>
+DT_AVX2 void backward8(const Args<float>& A, const Group8<K>& g, const int64_t* p, __m256i gofs, int64_t tb,
+                       const float* grad, float* gt, float* guv) {
+  const int64_t C = CC > 0 ? CC : A.C, M = A.M;
+  if (guv != nullptr) {
+    const __m256 border = _mm256_set1_ps(A.border);
+    __m256 sx = _mm256_setzero_ps(), sy = _mm256_setzero_ps();
+    for (int64_t c = 0; c < C; ++c) {
+      const float* plane = A.tex + tb + c * A.plane;
+      __m256 cx = _mm256_setzero_ps(), cy = _mm256_setzero_ps();
+      for (int r = 0; r < K; ++r) {
+        __m256 rx = _mm256_setzero_ps(), rv = _mm256_setzero_ps();
+        for (int q = 0; q < K; ++q) {
+          const __m256 val = texels8<kBorder>(plane, g, r, q, border);
+          rx = _mm256_add_ps(rx, _mm256_mul_ps(g.ax.dw[q], val));
+          rv = _mm256_add_ps(rv, _mm256_mul_ps(g.ax.w[q], val));
+        }
+        cx = _mm256_add_ps(cx, _mm256_mul_ps(g.ay.w[r], rx));
+        cy = _mm256_add_ps(cy, _mm256_mul_ps(g.ay.dw[r], rv));
+      }
+      const __m256 gc = _mm256_i32gather_ps(grad + c * M, gofs, 4);
+      sx = _mm256_add_ps(sx, _mm256_mul_ps(gc, cx));
+      sy = _mm256_add_ps(sy, _mm256_mul_ps(gc, cy));
+    }
+    alignas(32) float gx[8], gy[8];
+    _mm256_store_ps(gx, _mm256_mul_ps(sx, _mm256_set1_ps(static_cast<float>(A.W))));
+    _mm256_store_ps(gy, _mm256_mul_ps(sy, _mm256_set1_ps(static_cast<float>(A.H))));
+    for (int j = 0; j < 8; ++j) guv[2 * p[j]] = gx[j], guv[2 * p[j] + 1] = gy[j];
+  }
+  if (gt == nullptr) return;
+  alignas(32) int32_t idx[K][K][8], in[K][K][8];
+  alignas(32) float share[K][K][8];
+  for (int r = 0; r < K; ++r)
+    for (int q = 0; q < K; ++q) {
+      _mm256_store_si256(reinterpret_cast<__m256i*>(idx[r][q]), _mm256_add_epi32(g.rows[r], g.ax.i[q]));
+      if (kBorder) _mm256_store_si256(reinterpret_cast<__m256i*>(in[r][q]), _mm256_and_si256(g.ay.in[r], g.ax.in[q]));
+    }
+  for (int64_t c = 0; c < C; ++c) {
+    const __m256 gc = _mm256_i32gather_ps(grad + c * M, gofs, 4);
+    for (int r = 0; r < K; ++r) {
+      const __m256 gr = _mm256_mul_ps(gc, g.ay.w[r]);
+      for (int q = 0; q < K; ++q) _mm256_store_ps(share[r][q], _mm256_mul_ps(gr, g.ax.w[q]));
+    }
+    float* tc = gt + tb + c * A.plane;
+    for (int j = 0; j < 8; ++j)
+      for (int r = 0; r < K; ++r)
+        for (int q = 0; q < K; ++q)
+          if (!kBorder || in[r][q][j]) tc[idx[r][q][j]] += share[r][q][j];
+  }
 }
-#else
-#define DT_HAVE_AVX2 0
-bool cpu_has_avx2() { return false; }
-#endif
 
-std::atomic<bool> g_simd{true};
+// The backward of points idx[0, n) by blocks of groups of eight (see backward8); the groups it declines (a
+// non-finite coordinate, points on two textures) and the tail go through the scalar loop.
+template <int KIND, int CC, bool kBorder>
+__attribute__((target("avx2,fma"))) void backward_avx2(const Args<float>& A, const int64_t* idx, int64_t n,
+                                                       const float* grad, float* gt, float* guv) {
+  constexpr int K = taps_of<KIND>();
+  const int64_t C = CC > 0 ? CC : A.C, M = A.M;
+  Group8<K> grp[kGroups];
+  __m256i gofs[kGroups];
+  int64_t tb[kGroups];
+  bool ok[kGroups];
+  Block<float, KIND> bl;
+  int64_t s = 0;
+  while (s + 8 <= n) {
+    const int m = static_cast<int>(std::min<int64_t>(kGroups, (n - s) / 8));
+    for (int i = 0; i < m; ++i) {
+      const int64_t* p = idx + s + 8 * i;
+      alignas(32) float us[8], vs[8];
+      alignas(32) int32_t go[8];  // the points' offsets in grad [B, C, M]
+      const int64_t b0 = p[0] / M;
+      ok[i] = true;
+      for (int j = 0; j < 8; ++j) {
+        const int64_t b = p[j] / M;
+        ok[i] = ok[i] && (A.Bt == 1 || b == b0);
+        us[j] = A.uv[2 * p[j]];
+        vs[j] = A.uv[2 * p[j] + 1];
+        go[j] = static_cast<int32_t>(p[j] + b * (C - 1) * M);
+      }
+      const __m256 u = _mm256_load_ps(us), v = _mm256_load_ps(vs);
+      ok[i] = ok[i] && finite8(u, v);
+      if (!ok[i]) continue;
+      gofs[i] = _mm256_load_si256(reinterpret_cast<const __m256i*>(go));
+      tb[i] = (A.Bt == 1 ? 0 : b0) * C * A.plane;
+      prepare8<K>(A, u, v, grp[i]);
+      if (guv != nullptr) prefetch8<K, false>(grp[i], A.tex + tb[i], C, A.plane);
+      if (gt != nullptr) prefetch8<K, true>(grp[i], gt + tb[i], C, A.plane);
+    }
+    for (int i = 0; i < m; ++i, s += 8) {
+      if (ok[i]) {
+        backward8<K, CC, kBorder>(A, grp[i], idx + s, gofs[i], tb[i], grad, gt, guv);
+        continue;
+      }
+      bl.cnt = 8;
+      for (int j = 0; j < 8; ++j) bl.p[j] = idx[s + j];
+      backward_block<float, KIND, CC, kBorder>(bl, A, grad, gt, guv);
+    }
+  }
+  for (; s < n; s += kBlock) {
+    bl.cnt = static_cast<int>(std::min<int64_t>(kBlock, n - s));
+    for (int j = 0; j < bl.cnt; ++j) bl.p[j] = idx[s + j];
+    backward_block<float, KIND, CC, kBorder>(bl, A, grad, gt, guv);
+  }
+}
+
+#endif
 
 // Whether a float32 read of this kind and texture goes through the eight-point path.
 bool simd_read(int64_t kind, const torch::Tensor& texture) {
-  return DT_HAVE_AVX2 && g_simd.load() && cpu_has_avx2() && kind != NEAREST &&
+  return simd_on() && kind != NEAREST &&
          texture.scalar_type() == torch::kFloat32 && texture.size(2) * texture.size(3) < (int64_t(1) << 31);
 }
 
@@ -643,6 +778,7 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
   torch::Tensor gt = need_texture ? torch::zeros_like(texture) : torch::Tensor();
   torch::Tensor guv = need_uv ? torch::zeros_like(uv) : torch::Tensor();
   if (!need_texture && !need_uv) return {gt, guv};
+  const bool simd = simd_read(kind, texture) && B * C * M < (int64_t(1) << 31);  // int32 gather offsets into grad
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "sample_backward", [&] {
     const Args<scalar_t> A = args_of<scalar_t>(texture, uv, opts);
     const scalar_t* pg = grad.data_ptr<scalar_t>();
@@ -656,7 +792,13 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
         // The points of idx[0, n) in blocks: uv gradients, and texture gradients into tex (or none).
         auto blocks = [&](const int64_t* idx, int64_t n, scalar_t* tex) {
           Block<scalar_t, KIND> bl;
-          for (int64_t s = 0; s < n; s += kBlock) {
+          int64_t s = 0;
+#if DT_HAVE_AVX2
+          if constexpr (std::is_same_v<scalar_t, float> && KIND != NEAREST) {
+            if (simd) return backward_avx2<KIND, CC, kB>(A, idx, n, pg, tex, pguv);
+          }
+#endif
+          for (; s < n; s += kBlock) {
             bl.cnt = static_cast<int>(std::min<int64_t>(kBlock, n - s));
             for (int j = 0; j < bl.cnt; ++j) bl.p[j] = idx[s + j];
             backward_block<scalar_t, KIND, CC, kB>(bl, A, pg, tex, pguv);
@@ -703,8 +845,8 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
   return {gt, guv};
 }
 
-bool sample_simd(bool enabled) { return g_simd.exchange(enabled); }
+bool set_simd(bool enabled) { return simd_switch().exchange(enabled); }
 
-bool sample_simd_available() { return DT_HAVE_AVX2 && cpu_has_avx2(); }
+bool simd_available() { return DT_HAVE_AVX2 && cpu_has_avx2(); }
 
 }  // namespace difftex

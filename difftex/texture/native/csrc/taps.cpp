@@ -15,6 +15,10 @@
 #include "common.h"
 #include "kernels.h"
 
+#if DT_HAVE_AVX2
+#include <immintrin.h>
+#endif
+
 namespace difftex {
 
 std::vector<Level> shapes(const std::vector<torch::Tensor>& levels, const torch::Tensor& uv, const torch::Tensor& D,
@@ -90,6 +94,184 @@ void forward_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<Level
   }
 }
 
+
+// ---------------------------------------------------------------------------
+// One tap a point (trilinear, nearest-mip) in float32, eight points at a
+// time (AVX2, checked at run time as single.cpp does): a group of eight
+// whose points read the same levels (nearly every group: the level follows
+// the footprint, which changes slowly over an image) computes its taps in
+// vector registers and reads each tap's texels of the eight points in one
+// gather; the other groups, and every point with a non-finite coordinate,
+// go through the scalar loop. The coordinates are common.h's fold and
+// place in double (the same texels and fractions as the scalar loop, bit
+// for bit), the texel arithmetic is the scalar loop's float32 arithmetic
+// in the same order.
+// ---------------------------------------------------------------------------
+#if DT_HAVE_AVX2
+
+// Eight points' bilinear taps along one axis of n texels (common.h fold + place): the two wrapped indices,
+// whether each is a texel (border), the fraction and the fold slope, each as two halves of four doubles where
+// double.
+struct Place8 {
+  __m256i i0, i1, in0, in1;
+  __m256d f[2], slope[2];
+};
+
+DT_AVX2 __m256d frac4(__m256d x) {  // common.h frac: 0 from 2^52 on
+  const __m256d f = _mm256_sub_pd(x, _mm256_floor_pd(x));
+  const __m256d small = _mm256_cmp_pd(_mm256_andnot_pd(_mm256_set1_pd(-0.0), x), _mm256_set1_pd(kTwo52), _CMP_LT_OQ);
+  return _mm256_and_pd(f, small);
+}
+
+DT_AVX2 void place8(const double* u, int32_t n, int mode, Place8& a) {
+  const __m256d one = _mm256_set1_pd(1.0), nd = _mm256_set1_pd(static_cast<double>(n));
+  __m128i lo[2];
+  for (int h = 0; h < 2; ++h) {
+    __m256d x = _mm256_loadu_pd(u + 4 * h);
+    a.slope[h] = one;
+    if (mode == REPEAT) {
+      x = frac4(x);
+    } else if (mode == MIRROR) {
+      const __m256d f = frac4(_mm256_mul_pd(_mm256_set1_pd(0.5), x));
+      const __m256d s = _mm256_sub_pd(_mm256_add_pd(f, f), one);
+      x = _mm256_sub_pd(one, _mm256_andnot_pd(_mm256_set1_pd(-0.0), s));
+      a.slope[h] = _mm256_blendv_pd(one, _mm256_set1_pd(-1.0), _mm256_cmp_pd(f, _mm256_set1_pd(0.5), _CMP_GE_OQ));
+    }
+    __m256d c = _mm256_sub_pd(_mm256_mul_pd(x, nd), _mm256_set1_pd(0.5));
+    // clamp / border: past [-2, n + 1] both taps are off the texture on that side already (the same reads; the
+    // scalar loop's capped floor gives a fraction of 0 there, as the clipped integral c does)
+    c = _mm256_min_pd(_mm256_max_pd(c, _mm256_set1_pd(-2.0)), _mm256_add_pd(nd, one));
+    const __m256d c0 = _mm256_floor_pd(c);
+    a.f[h] = _mm256_sub_pd(c, c0);
+    lo[h] = _mm256_cvttpd_epi32(c0);
+  }
+  const __m256i i = _mm256_set_m128i(lo[1], lo[0]), ni = _mm256_set1_epi32(n), zero = _mm256_setzero_si256();
+  const __m256i last = _mm256_set1_epi32(n - 1), all = _mm256_set1_epi32(-1);
+  __m256i j = _mm256_add_epi32(i, _mm256_set1_epi32(1)), k = i;
+  a.in0 = a.in1 = all;
+  if (mode == REPEAT) {  // i in [-1, n - 1], j in [0, n]
+    k = _mm256_add_epi32(k, _mm256_and_si256(_mm256_cmpgt_epi32(zero, k), ni));
+    j = _mm256_sub_epi32(j, _mm256_andnot_si256(_mm256_cmpgt_epi32(ni, j), ni));
+  } else if (mode == BORDER) {
+    a.in0 = _mm256_andnot_si256(_mm256_or_si256(_mm256_cmpgt_epi32(zero, k), _mm256_cmpgt_epi32(k, last)), all);
+    a.in1 = _mm256_andnot_si256(_mm256_or_si256(_mm256_cmpgt_epi32(zero, j), _mm256_cmpgt_epi32(j, last)), all);
+  }
+  // mirror (the edge texel is its own image), clamp, and the border's in-range index: clamped
+  a.i0 = _mm256_min_epi32(_mm256_max_epi32(k, zero), last);
+  a.i1 = _mm256_min_epi32(_mm256_max_epi32(j, zero), last);
+}
+
+// Four floats of two halves of doubles (low half first).
+DT_AVX2 __m256 to_ps(__m256d a, __m256d b) { return _mm256_set_m128(_mm256_cvtpd_ps(b), _mm256_cvtpd_ps(a)); }
+
+// One level's read of a group: the four taps' texel offsets and (border) masks.
+struct Quad8 {
+  __m256i idx[4], in[4];
+};
+
+DT_AVX2 Quad8 quad8(const Place8& x, const Place8& y, int32_t w) {
+  Quad8 t;
+  const __m256i W = _mm256_set1_epi32(w), r0 = _mm256_mullo_epi32(y.i0, W), r1 = _mm256_mullo_epi32(y.i1, W);
+  t.idx[0] = _mm256_add_epi32(r0, x.i0); t.in[0] = _mm256_and_si256(y.in0, x.in0);
+  t.idx[1] = _mm256_add_epi32(r0, x.i1); t.in[1] = _mm256_and_si256(y.in0, x.in1);
+  t.idx[2] = _mm256_add_epi32(r1, x.i0); t.in[2] = _mm256_and_si256(y.in1, x.in0);
+  t.idx[3] = _mm256_add_epi32(r1, x.i1); t.in[3] = _mm256_and_si256(y.in1, x.in1);
+  return t;
+}
+
+template <bool kBorder>
+DT_AVX2 __m256 tap8(const float* plane, const Quad8& t, int q, __m256 border) {
+  if (!kBorder) return _mm256_i32gather_ps(plane, t.idx[q], 4);
+  return _mm256_mask_i32gather_ps(border, plane, t.idx[q], _mm256_castsi256_ps(t.in[q]), 4);
+}
+
+// The reads (levels, weights) of eight points, when all read the same levels; false otherwise.
+DT_AVX2 bool reads8(const float* pd, const int64_t* e, int64_t K, bool nearest, bool d_grad, Reads* r) {
+  for (int j = 0; j < 8; ++j) {
+    r[j] = reads_of(static_cast<double>(pd[e ? e[j] : j]), K, nearest, d_grad);
+    if (r[j].n != r[0].n || r[j].k[0] != r[0].k[0] || (r[j].n == 2 && r[j].k[1] != r[0].k[1])) return false;
+  }
+  return true;
+}
+
+// The forward of points [lo, hi) with one tap each, float32, by groups of eight.
+template <int CC, bool kBorder>
+__attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t hi, int64_t Cdyn,
+                                                            const std::vector<Level>& L,
+                                                            const std::vector<const float*>& lp, const float* puv,
+                                                            const float* pd, float* po, int64_t M, int64_t wrap_u,
+                                                            int64_t wrap_v, double border, bool nearest, bool d_grad) {
+  const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
+  const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
+  int64_t e = lo;
+  for (; e + 8 <= hi; e += 8) {
+    alignas(32) double u[8], v[8];
+    bool ok = true;
+    for (int j = 0; j < 8; ++j) {
+      u[j] = puv[2 * (e + j)], v[j] = puv[2 * (e + j) + 1];
+      ok = ok && std::isfinite(u[j]) && std::isfinite(v[j]);
+    }
+    Reads r[8];
+    if (!ok || !reads8(pd + e, nullptr, K, nearest, d_grad, r)) {
+      forward_range<float, CC, kBorder>(e, e + 8, C, L, lp, puv, pd, nullptr, nullptr, po, M, wrap_u, wrap_v, border,
+                                        nearest, d_grad);
+      continue;
+    }
+    __m256 acc[CC > 0 ? CC : 1];
+    for (int64_t c = 0; c < (CC > 0 ? CC : 1); ++c) acc[c] = _mm256_setzero_ps();
+    for (int jr = 0; jr < r[0].n; ++jr) {
+      const Level& lv = L[r[0].k[jr]];
+      Place8 px, py;
+      place8(u, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
+      place8(v, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
+      const Quad8 t = quad8(px, py, static_cast<int32_t>(lv.w));
+      __m256 wts[4];
+      {
+        alignas(32) double wl[8];
+        for (int j = 0; j < 8; ++j) wl[j] = r[j].wt[jr];
+        __m256d w4[2][4];
+        for (int h = 0; h < 2; ++h) {  // wl * (1 - fx) * (1 - fy) ... in double, as the scalar loop
+          const __m256d l = _mm256_load_pd(wl + 4 * h), one = _mm256_set1_pd(1.0);
+          const __m256d gx = _mm256_sub_pd(one, px.f[h]), gy = _mm256_sub_pd(one, py.f[h]);
+          w4[h][0] = _mm256_mul_pd(_mm256_mul_pd(l, gx), gy);
+          w4[h][1] = _mm256_mul_pd(_mm256_mul_pd(l, px.f[h]), gy);
+          w4[h][2] = _mm256_mul_pd(_mm256_mul_pd(l, gx), py.f[h]);
+          w4[h][3] = _mm256_mul_pd(_mm256_mul_pd(l, px.f[h]), py.f[h]);
+        }
+        for (int q = 0; q < 4; ++q) wts[q] = to_ps(w4[0][q], w4[1][q]);
+      }
+      const float* p = lp[r[0].k[jr]];
+      for (int64_t c = 0; c < C; ++c) {
+        const float* pp = p + c * lv.plane;
+        __m256 s = _mm256_setzero_ps();
+        for (int q = 0; q < 4; ++q) s = _mm256_add_ps(s, _mm256_mul_ps(wts[q], tap8<kBorder>(pp, t, q, bv)));
+        if (CC > 0) {
+          acc[c] = _mm256_add_ps(acc[c], s);
+        } else {  // run-time channel count: accumulate in the output
+          float* o = po + c * M + e;
+          _mm256_storeu_ps(o, jr == 0 ? s : _mm256_add_ps(_mm256_loadu_ps(o), s));
+        }
+      }
+    }
+    if (CC > 0)
+      for (int64_t c = 0; c < C; ++c) _mm256_storeu_ps(po + c * M + e, acc[c]);
+  }
+  if (e < hi)
+    forward_range<float, CC, kBorder>(e, hi, C, L, lp, puv, pd, nullptr, nullptr, po, M, wrap_u, wrap_v, border,
+                                      nearest, d_grad);
+}
+
+#endif
+
+// Whether a read goes through the eight-point path: float32, one tap a point, levels with int32 texel offsets.
+bool simd_taps(const torch::Tensor& uv, const torch::Tensor& count, const std::vector<torch::Tensor>& levels) {
+  if (!(simd_on() && uv.scalar_type() == torch::kFloat32 && count.numel() == 0))
+    return false;
+  for (const auto& t : levels)
+    if (t.size(1) * t.size(2) >= (int64_t(1) << 31)) return false;
+  return true;
+}
+
 }  // namespace
 
 torch::Tensor forward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor D, torch::Tensor axis,
@@ -100,6 +282,7 @@ torch::Tensor forward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch
   auto L = shapes(levels, uv, D, axis, count);
   const int64_t C = levels[0].size(0), M = uv.size(0);
   auto out = torch::empty({C, M}, uv.options());
+  const bool simd = simd_taps(uv, count, levels);
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_forward", [&] {
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
@@ -110,8 +293,16 @@ torch::Tensor forward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch
     scalar_t* po = out.data_ptr<scalar_t>();
     at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
       specialized(C, wrap_u, wrap_v, [&](auto cc, auto border_) {
-        forward_range<scalar_t, decltype(cc)::value, decltype(border_)::value>(
-            lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border, nearest, d_grad);
+        constexpr int CC = decltype(cc)::value;
+        constexpr bool kB = decltype(border_)::value;
+#if DT_HAVE_AVX2
+        if constexpr (std::is_same_v<scalar_t, float>) {
+          if (simd) return forward_range_avx2<CC, kB>(lo, hi, C, L, lp, puv, pd, po, M, wrap_u, wrap_v, border,
+                                                       nearest, d_grad);
+        }
+#endif
+        forward_range<scalar_t, CC, kB>(lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border, nearest,
+                                        d_grad);
       });
     });
   });
@@ -262,6 +453,154 @@ DT_INLINE int32_t tap_key(const ScaleBands& T, const std::vector<Level>& L, doub
   return static_cast<int32_t>(T.serial);
 }
 
+#if DT_HAVE_AVX2
+// The backward of eight points e[0..8) (one tap each, float32): as backward_point, eight at a time; false,
+// with nothing written, where a coordinate is not finite or the points read different levels.
+#if defined(__GNUC__) || defined(__clang__)
+#define DT_PREFETCH(addr, write) __builtin_prefetch((addr), (write) ? 1 : 0, 3)
+#else
+#define DT_PREFETCH(addr, write) ((void)(addr))
+#endif
+
+// Prefetches the texel lines that backward8 will read (levels, where it needs them) and write (level
+// gradients) for the eight points e[0..8), on the levels of the first point: issued two groups ahead, so that
+// the misses overlap the work on the groups before (measured: without it the backward waited on its first
+// texel gathers for a third of its time). CC as in backward8.
+template <int CC>
+__attribute__((target("avx2,fma"))) void prefetch8(const int64_t* e, int64_t C, const std::vector<Level>& L,
+                                                   const std::vector<const float*>& lp, const float* puv,
+                                                   const float* pd, const Grads<float>& out, int64_t wrap_u,
+                                                   int64_t wrap_v, bool nearest, bool d_grad, bool reads) {
+  alignas(32) double u[8], v[8];
+  for (int j = 0; j < 8; ++j) {
+    u[j] = puv[2 * e[j]], v[j] = puv[2 * e[j] + 1];
+    if (!std::isfinite(u[j]) || !std::isfinite(v[j])) return;
+  }
+  const Reads r = reads_of(static_cast<double>(pd[e[0]]), static_cast<int64_t>(L.size()), nearest, d_grad);
+  for (int jr = 0; jr < r.n; ++jr) {
+    const int64_t k = r.k[jr];
+    const Level& lv = L[k];
+    Place8 px, py;
+    place8(u, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
+    place8(v, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
+    const Quad8 t = quad8(px, py, static_cast<int32_t>(lv.w));
+    alignas(32) int32_t o[2][8];
+    _mm256_store_si256(reinterpret_cast<__m256i*>(o[0]), t.idx[0]);
+    _mm256_store_si256(reinterpret_cast<__m256i*>(o[1]), t.idx[2]);
+    for (int j = 0; j < 8; ++j)
+      for (int row = 0; row < 2; ++row)
+        for (int64_t c = 0; c < (CC > 0 ? CC : C); ++c) {
+          if (reads) DT_PREFETCH(lp[k] + c * lv.plane + o[row][j], false);
+          if (out.gp[k] != nullptr) DT_PREFETCH(out.gp[k] + c * lv.plane + o[row][j], true);
+        }
+  }
+}
+
+template <int CC, bool kBorder>
+__attribute__((target("avx2,fma"))) bool backward8(const int64_t* e, int64_t Cdyn, const std::vector<Level>& L,
+                       const std::vector<const float*>& lp, const float* puv, const float* pd, const float* pg,
+                       const Grads<float>& out, int64_t gsc, int64_t gsm, int64_t wrap_u, int64_t wrap_v,
+                       double border, bool nearest, bool d_grad) {
+  const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
+  alignas(32) double u[8], v[8];
+  for (int j = 0; j < 8; ++j) {
+    u[j] = puv[2 * e[j]], v[j] = puv[2 * e[j] + 1];
+    if (!std::isfinite(u[j]) || !std::isfinite(v[j])) return false;
+  }
+  Reads r[8];
+  if (!reads8(pd, e, K, nearest, d_grad, r)) return false;
+  // The output gradient of each channel; points whose gradient is 0 in every channel write nothing (as
+  // backward_point returns early: a zero weight times an infinite texel must not reach the uv gradient).
+  constexpr int CMAX = CC > 0 ? CC : 1;
+  std::vector<__m256> gheap(CC > 0 ? 0 : C);
+  __m256 gstack[CMAX];
+  __m256* g = CC > 0 ? gstack : gheap.data();
+  __m256 any = _mm256_setzero_ps();
+  for (int64_t c = 0; c < C; ++c) {
+    alignas(32) float gc[8];
+    for (int j = 0; j < 8; ++j) gc[j] = pg[c * gsc + e[j] * gsm];
+    g[c] = _mm256_load_ps(gc);
+    any = _mm256_or_ps(any, _mm256_cmp_ps(g[c], _mm256_setzero_ps(), _CMP_NEQ_UQ));
+  }
+  const int live = _mm256_movemask_ps(any);
+  if (live == 0) return true;
+  const __m256 bv = _mm256_set1_ps(static_cast<float>(border)), one = _mm256_set1_ps(1.0f);
+  __m256d du[2], dv[2], dD[2];
+  for (int h = 0; h < 2; ++h) du[h] = dv[h] = dD[h] = _mm256_setzero_pd();
+  for (int jr = 0; jr < r[0].n; ++jr) {
+    const int64_t k = r[0].k[jr];
+    const Level& lv = L[k];
+    Place8 px, py;
+    place8(u, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
+    place8(v, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
+    const Quad8 t = quad8(px, py, static_cast<int32_t>(lv.w));
+    const __m256 fx = to_ps(px.f[0], px.f[1]), fy = to_ps(py.f[0], py.f[1]);
+    const __m256 gx = _mm256_sub_ps(one, fx), gy = _mm256_sub_ps(one, fy);
+    const __m256 w[4] = {_mm256_mul_ps(gx, gy), _mm256_mul_ps(fx, gy), _mm256_mul_ps(gx, fy), _mm256_mul_ps(fx, fy)};
+    alignas(32) double wt[8], dwt[8];
+    for (int j = 0; j < 8; ++j) wt[j] = r[j].wt[jr], dwt[j] = r[j].dwt[jr];
+    alignas(32) float wlf[8];
+    for (int j = 0; j < 8; ++j) wlf[j] = static_cast<float>(wt[j]);
+    const __m256 wl = _mm256_load_ps(wlf);
+    alignas(32) int32_t idx[4][8], in[4][8];
+    float* gk = out.gp[k];
+    if (gk != nullptr)
+      for (int q = 0; q < 4; ++q) {
+        _mm256_store_si256(reinterpret_cast<__m256i*>(idx[q]), t.idx[q]);
+        if (kBorder) _mm256_store_si256(reinterpret_cast<__m256i*>(in[q]), t.in[q]);
+      }
+    __m256 sx = _mm256_setzero_ps(), sy = _mm256_setzero_ps(), sv = _mm256_setzero_ps();
+    for (int64_t c = 0; c < C; ++c) {
+      const float* pp = lp[k] + c * lv.plane;
+      __m256 tq[4];
+      for (int q = 0; q < 4; ++q) tq[q] = tap8<kBorder>(pp, t, q, bv);
+      const __m256 ex = _mm256_add_ps(_mm256_mul_ps(gy, _mm256_sub_ps(tq[1], tq[0])),
+                                      _mm256_mul_ps(fy, _mm256_sub_ps(tq[3], tq[2])));
+      const __m256 ey = _mm256_add_ps(_mm256_mul_ps(gx, _mm256_sub_ps(tq[2], tq[0])),
+                                      _mm256_mul_ps(fx, _mm256_sub_ps(tq[3], tq[1])));
+      __m256 ev = _mm256_mul_ps(w[0], tq[0]);
+      for (int q = 1; q < 4; ++q) ev = _mm256_add_ps(ev, _mm256_mul_ps(w[q], tq[q]));
+      sx = _mm256_add_ps(sx, _mm256_mul_ps(g[c], ex));
+      sy = _mm256_add_ps(sy, _mm256_mul_ps(g[c], ey));
+      sv = _mm256_add_ps(sv, _mm256_mul_ps(g[c], ev));
+      if (gk == nullptr) continue;
+      alignas(32) float share[4][8];
+      const __m256 gw = _mm256_mul_ps(g[c], wl);
+      for (int q = 0; q < 4; ++q) _mm256_store_ps(share[q], _mm256_mul_ps(gw, w[q]));
+      float* gq = gk + c * lv.plane;
+      for (int j = 0; j < 8; ++j) {
+        if (!(live >> j & 1)) continue;
+        for (int q = 0; q < 4; ++q)
+          if (!kBorder || in[q][j]) gq[idx[q][j]] += share[q][j];
+      }
+    }
+    // tdu = wt * sx * slope * w_k, dD += dwt * sv, in double as backward_point
+    const __m256d nw = _mm256_set1_pd(static_cast<double>(lv.w)), nh = _mm256_set1_pd(static_cast<double>(lv.h));
+    const __m128 hx[2] = {_mm256_castps256_ps128(sx), _mm256_extractf128_ps(sx, 1)};
+    const __m128 hy[2] = {_mm256_castps256_ps128(sy), _mm256_extractf128_ps(sy, 1)};
+    const __m128 hv[2] = {_mm256_castps256_ps128(sv), _mm256_extractf128_ps(sv, 1)};
+    for (int h = 0; h < 2; ++h) {
+      const __m256d a = _mm256_load_pd(wt + 4 * h), da = _mm256_load_pd(dwt + 4 * h);
+      du[h] = _mm256_add_pd(du[h], _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(a, _mm256_cvtps_pd(hx[h])), px.slope[h]), nw));
+      dv[h] = _mm256_add_pd(dv[h], _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(a, _mm256_cvtps_pd(hy[h])), py.slope[h]), nh));
+      dD[h] = _mm256_add_pd(dD[h], _mm256_mul_pd(da, _mm256_cvtps_pd(hv[h])));
+    }
+  }
+  alignas(32) double ou[8], ov[8], oD[8];
+  for (int h = 0; h < 2; ++h) {
+    _mm256_store_pd(ou + 4 * h, du[h]);
+    _mm256_store_pd(ov + 4 * h, dv[h]);
+    _mm256_store_pd(oD + 4 * h, dD[h]);
+  }
+  for (int j = 0; j < 8; ++j) {
+    if (!(live >> j & 1)) continue;
+    if (out.uv) out.uv[2 * e[j]] = static_cast<float>(ou[j]), out.uv[2 * e[j] + 1] = static_cast<float>(ov[j]);
+    if (out.D) out.D[e[j]] = static_cast<float>(oD[j]);
+  }
+  return true;
+}
+#endif
+
 }  // namespace
 
 std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tensor> backward(
@@ -285,6 +624,7 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
   torch::Tensor guv = need_uv ? torch::zeros({M, 2}, uv.options()) : torch::Tensor();
   torch::Tensor gD = need_D ? torch::zeros({M}, uv.options()) : torch::Tensor();
   torch::Tensor gax = need_axis ? torch::zeros({M, 2}, uv.options()) : torch::Tensor();
+  const bool simd = simd_taps(uv, count, levels);
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_backward", [&] {
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
@@ -317,17 +657,37 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
       }
     }
     specialized(C, wrap_u, wrap_v, [&](auto cc, auto border_) {
+      constexpr int CC = decltype(cc)::value;
+      constexpr bool kB = decltype(border_)::value;
       auto one = [&](int64_t e) {
-        backward_point<scalar_t, decltype(cc)::value, decltype(border_)::value>(
-            e, C, L, lp, puv, pd, pc, pa, pg, out, gsc, gsm, wrap_u, wrap_v, border, nearest, d_grad);
+        backward_point<scalar_t, CC, kB>(e, C, L, lp, puv, pd, pc, pa, pg, out, gsc, gsm, wrap_u, wrap_v, border,
+                                         nearest, d_grad);
+      };
+      // The points idx[0, n): by eight where the eight-point path takes them, else one at a time.
+      auto run = [&](const int64_t* idx, int64_t n) {
+        int64_t i = 0;
+#if DT_HAVE_AVX2
+        if constexpr (std::is_same_v<scalar_t, float>) {
+          const bool reads = out.uv != nullptr || out.D != nullptr;
+          for (int64_t a = 0; simd && a < 2 && a * 8 + 8 <= n; ++a)
+            prefetch8<CC>(idx + a * 8, C, L, lp, puv, pd, out, wrap_u, wrap_v, nearest, d_grad, reads);
+          for (; simd && i + 8 <= n; i += 8) {
+            if (i + 24 <= n) prefetch8<CC>(idx + i + 16, C, L, lp, puv, pd, out, wrap_u, wrap_v, nearest, d_grad, reads);
+            if (!backward8<CC, kB>(idx + i, C, L, lp, puv, pd, pg, out, gsc, gsm, wrap_u, wrap_v, border, nearest,
+                                   d_grad))
+              for (int j = 0; j < 8; ++j) one(idx[i + j]);
+          }
+        }
+#endif
+        for (; i < n; ++i) one(idx[i]);
       };
       if (need_levels) {
-        run_banded(keys.data(), M, bands.classes, [&](const int64_t* idx, int64_t n) {
-          for (int64_t i = 0; i < n; ++i) one(idx[i]);
-        });
+        run_banded(keys.data(), M, bands.classes, run);
       } else {  // no scatter: the points are independent
         at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
-          for (int64_t e = lo; e < hi; ++e) one(e);
+          std::vector<int64_t> idx(hi - lo);
+          for (int64_t e = lo; e < hi; ++e) idx[e - lo] = e;
+          run(idx.data(), hi - lo);
         });
       }
     });
