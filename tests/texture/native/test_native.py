@@ -184,6 +184,28 @@ def test_the_kernel_box_step_is_bit_identical_to_the_torch_one(dtype):
 
 
 @needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, f64])
+def test_the_kernel_box_step_transpose_is_bit_identical_to_the_torch_one(dtype):
+    mipmap = importlib.import_module("difftex.texture.pyramid.mipmap")  # the module, not the function
+    g = torch.Generator().manual_seed(5)
+    coarse = torch.randn(2, 3, 65, 32, generator=g, dtype=dtype).transpose(2, 3)  # non-contiguous, 32 x 65
+    fine = torch.randn(2, 3, 64, 130, generator=g, dtype=dtype)
+    with difftex.backend("reference"), torch.no_grad():
+        ref_add = mipmap.step_adjoint(fine, coarse, (64, 130), inplace=False)
+        ref_new = mipmap.step_adjoint(None, coarse.clone(), (64, 130), inplace=True)
+    kernel = native.load()
+    assert torch.equal(kernel.box2_adjoint(coarse, fine), ref_add) and torch.equal(kernel.box2_adjoint(coarse), ref_new)
+    # Both equal the transpose of the box step: <box(x), c> = <x, box^T(c)>.
+    x = torch.randn(2, 3, 64, 130, generator=g, dtype=dtype)
+    lhs, rhs = (kernel.box2(x) * coarse).sum(), (x * kernel.box2_adjoint(coarse)).sum()
+    torch.testing.assert_close(lhs, rhs, rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=0)
+    with torch.no_grad():  # the pyramid's adjoint takes the kernel where it may
+        assert torch.equal(mipmap.step_adjoint(fine, coarse, (64, 130), inplace=False), ref_add)
+    with pytest.raises(RuntimeError, match=r"fine must be \[\.\.\., 2h, 2w\]"):
+        kernel.box2_adjoint(coarse, fine[..., :4])
+
+
+@needs_kernel
 def test_the_kernel_constants_are_the_python_ones():
     # Each rule has one Python constant; the kernel mirrors it and exports its copy.
     lod, wrap, anisotropic, auto, ewa = (importlib.import_module(f"difftex.texture.{name}") for name in (

@@ -51,6 +51,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, 
 
 // box.cpp: one 2 x 2 box step of the pyramid.
 torch::Tensor box2(torch::Tensor x);
+torch::Tensor box2_adjoint(torch::Tensor coarse, c10::optional<torch::Tensor> fine);
 
 // ewa.cpp: EWA, forward [C, M] and first-order backward.
 torch::Tensor ewa(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor sigma, torch::Tensor minor,
