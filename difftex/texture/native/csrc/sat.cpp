@@ -28,8 +28,41 @@
 
 #include <ATen/Parallel.h>
 
+#include <memory>
+#include <mutex>
+
 namespace difftex {
 namespace {
+
+// A float64 buffer kept between calls (slot 0: the forward's table, 1: the backward's gradient table): a fresh
+// texture-sized allocation is fresh pages, and their faults cost about as much as one pass over them (the torch
+// path spent a fifth of its time in page faults, perf). Buffers over kKeepBytes are not kept (a 4096^2 RGB
+// table is 400 MB); a call that finds its slot busy (another thread in the kernel) allocates its own.
+constexpr size_t kKeepBytes = size_t{160} << 20;
+
+class Scratch {
+ public:
+  Scratch(int slot, size_t n) {
+    static std::mutex mutex[2];
+    static std::vector<double> kept[2];
+    if (n * sizeof(double) <= kKeepBytes) {
+      lock_ = std::unique_lock<std::mutex>(mutex[slot], std::try_to_lock);
+      if (lock_.owns_lock()) {
+        if (kept[slot].size() < n) kept[slot].resize(n);
+        data_ = kept[slot].data();
+        return;
+      }
+    }
+    own_.reset(new double[n]);  // uninitialized: every entry used is written first
+    data_ = own_.get();
+  }
+  double* data() { return data_; }
+
+ private:
+  std::unique_lock<std::mutex> lock_;
+  std::unique_ptr<double[]> own_;
+  double* data_ = nullptr;
+};
 
 // Row blocks for T threads over rows [0, n): block t is [n t / T, n (t + 1) / T).
 inline int64_t block_start(int64_t t, int64_t T, int64_t n) { return n * t / T; }
@@ -62,25 +95,31 @@ void check_terms(const torch::Tensor& texture, const torch::Tensor& pu, const to
 
 // The table [H + 1][W + 1][C] of texture [C, H, W] (float64).
 template <typename scalar_t>
-std::vector<double> build_table(const scalar_t* f, int64_t C, int64_t H, int64_t W) {
+void build_table(const scalar_t* f, int64_t C, int64_t H, int64_t W, double* S) {
   const int64_t row = (W + 1) * C;
-  std::vector<double> S(static_cast<size_t>((H + 1) * row));
-  std::fill(S.begin(), S.begin() + row, 0.0);
+  std::fill(S, S + row, 0.0);
   const int64_t T = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), H / 64));
   // Each block's rows with the rows above the block taken as zero.
   at::parallel_for(0, T, 1, [&](int64_t t0, int64_t t1) {
     for (int64_t t = t0; t < t1; ++t) {
       const int64_t r0 = block_start(t, T, H), r1 = block_start(t + 1, T, H);
+      std::vector<double> run(C);
+      std::vector<const scalar_t*> src(C);
       for (int64_t r = r0; r < r1; ++r) {
-        double* out = S.data() + (r + 1) * row;
+        double* out = S + (r + 1) * row;
+        // The first row of a block starts from zero (the fix-up below adds the rows above); the others add the
+        // row above, contiguous with this one's writes.
         const double* up = r > r0 ? out - row : nullptr;
         for (int64_t c = 0; c < C; ++c) {
-          const scalar_t* src = f + (c * H + r) * W;
-          double run = 0.0;
+          src[c] = f + (c * H + r) * W;
+          run[c] = 0.0;
           out[c] = 0.0;
-          for (int64_t a = 0; a < W; ++a) {
-            run += static_cast<double>(src[a]);
-            out[(a + 1) * C + c] = up ? run + up[(a + 1) * C + c] : run;
+        }
+        for (int64_t a = 0; a < W; ++a) {
+          double* o = out + (a + 1) * C;
+          for (int64_t c = 0; c < C; ++c) {
+            run[c] += static_cast<double>(src[c][a]);
+            o[c] = up ? run[c] + up[(a + 1) * C + c] : run[c];
           }
         }
       }
@@ -91,22 +130,21 @@ std::vector<double> build_table(const scalar_t* f, int64_t C, int64_t H, int64_t
     // chain of one row per block, then each block's other rows in parallel.
     for (int64_t t = 1; t < T; ++t) {
       const int64_t r1 = block_start(t + 1, T, H);
-      const double* off = S.data() + block_start(t, T, H) * row;  // the row above the block, complete
-      double* last = S.data() + r1 * row;
+      const double* off = S + block_start(t, T, H) * row;  // the row above the block, complete
+      double* last = S + r1 * row;
       for (int64_t x = 0; x < row; ++x) last[x] += off[x];
     }
     at::parallel_for(1, T, 1, [&](int64_t t0, int64_t t1) {
       for (int64_t t = t0; t < t1; ++t) {
         const int64_t r0 = block_start(t, T, H), r1 = block_start(t + 1, T, H);
-        const double* off = S.data() + r0 * row;
+        const double* off = S + r0 * row;
         for (int64_t r = r0 + 1; r < r1; ++r) {  // table rows r0 + 1 .. r1 - 1 (row r1 done above)
-          double* out = S.data() + r * row;
+          double* out = S + r * row;
           for (int64_t x = 0; x < row; ++x) out[x] += off[x];
         }
       }
     });
   }
-  return S;
 }
 
 }  // namespace
@@ -125,9 +163,9 @@ std::vector<torch::Tensor> sat_forward(torch::Tensor texture, torch::Tensor pu, 
     jpv = torch::empty({C, M, Kv}, opts);
     jcv = torch::empty({C, M, Kv}, opts);
   }
-  std::vector<double> S;
+  Scratch S(0, static_cast<size_t>((H + 1) * row));
   AT_DISPATCH_FLOATING_TYPES(texture.scalar_type(), "sat_forward", [&] {
-    S = build_table(texture.data_ptr<scalar_t>(), C, H, W);
+    build_table(texture.data_ptr<scalar_t>(), C, H, W, S.data());
   });
   const double *ppu = pu.data_ptr<double>(), *pcu = cu.data_ptr<double>(), *ppv = pv.data_ptr<double>(),
                *pcv = cv.data_ptr<double>();
@@ -199,14 +237,15 @@ torch::Tensor sat_backward(torch::Tensor texture, torch::Tensor pu, torch::Tenso
   // gS rows 1..H matter (row 0 of the table is constant, its gradient reaches no texel); block t owns table rows
   // [1 + H t / T, 1 + H (t + 1) / T), i.e. texture rows one lower.
   const int64_t T = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), H / 64));
-  std::vector<double> G(static_cast<size_t>((H + 1) * row));
+  Scratch scratch(1, static_cast<size_t>((H + 1) * row));
+  double* G = scratch.data();
   std::vector<double> totals(static_cast<size_t>(T * W * C), 0.0);  // each block's suffix sums over its rows
   AT_DISPATCH_FLOATING_TYPES(texture.scalar_type(), "sat_backward", [&] {
     scalar_t* po = out.data_ptr<scalar_t>();
     at::parallel_for(0, T, 1, [&](int64_t t0, int64_t t1) {
       for (int64_t t = t0; t < t1; ++t) {
         const int64_t b0 = 1 + block_start(t, T, H), b1 = 1 + block_start(t + 1, T, H);
-        std::fill(G.begin() + b0 * row, G.begin() + b1 * row, 0.0);
+        std::fill(G + b0 * row, G + b1 * row, 0.0);
         // The scatter of every point's reads into the rows owned.
         for (int64_t e = 0; e < M; ++e) {
           for (int64_t l = 0; l < Kv; ++l) {
@@ -221,7 +260,7 @@ torch::Tensor sat_backward(torch::Tensor texture, torch::Tensor pu, torch::Tenso
               for (int q = 0; q < 2; ++q) {
                 const int64_t b = y.i + q;
                 if (b < b0 || b >= b1) continue;
-                double* gr = G.data() + b * row + x.i * C;
+                double* gr = G + b * row + x.i * C;
                 for (int64_t c = 0; c < C; ++c) {
                   const double g = pg[c * gsc + e * gsm];
                   gr[c] += g * wts[2 * q];
@@ -234,17 +273,19 @@ torch::Tensor sat_backward(torch::Tensor texture, torch::Tensor pu, torch::Tenso
         // Suffix sums of the rows owned, bottom up: acc[a] = sum over the block's rows b' >= b of the row sums
         // past column a; texture row b - 1 gets acc (plus the blocks below, added after when T > 1).
         double* acc = totals.data() + t * W * C;
+        std::vector<double> run(C);
         for (int64_t b = b1 - 1; b >= b0; --b) {
-          const double* gr = G.data() + b * row;
-          for (int64_t c = 0; c < C; ++c) {
-            double run = 0.0;
-            for (int64_t a = W - 1; a >= 0; --a) {
-              run += gr[(a + 1) * C + c];
-              acc[a * C + c] += run;
-              if (T == 1) po[(c * H + b - 1) * W + a] = static_cast<scalar_t>(acc[a * C + c]);
+          const double* gr = G + b * row;
+          std::fill(run.begin(), run.end(), 0.0);
+          for (int64_t a = W - 1; a >= 0; --a) {
+            for (int64_t c = 0; c < C; ++c) {
+              run[c] += gr[(a + 1) * C + c];
+              acc[a * C + c] += run[c];
             }
+            if (T == 1)
+              for (int64_t c = 0; c < C; ++c) po[(c * H + b - 1) * W + a] = static_cast<scalar_t>(acc[a * C + c]);
           }
-          if (T > 1) std::copy(acc, acc + W * C, G.data() + b * row);  // the block's partial, kept in double
+          if (T > 1) std::copy(acc, acc + W * C, G + b * row);  // the block's partial, kept in double
         }
       }
     });
@@ -261,7 +302,7 @@ torch::Tensor sat_backward(torch::Tensor texture, torch::Tensor pu, torch::Tenso
           const int64_t b0 = 1 + block_start(t, T, H), b1 = 1 + block_start(t + 1, T, H);
           const double* off = t + 1 < T ? totals.data() + (t + 1) * W * C : nullptr;
           for (int64_t b = b0; b < b1; ++b) {
-            const double* gr = G.data() + b * row;
+            const double* gr = G + b * row;
             for (int64_t c = 0; c < C; ++c)
               for (int64_t a = 0; a < W; ++a)
                 po[(c * H + b - 1) * W + a] = static_cast<scalar_t>(gr[a * C + c] + (off ? off[a * C + c] : 0.0));
