@@ -127,9 +127,10 @@ torch::Tensor halve(const torch::Tensor& x, int axis) {
   return out;
 }
 
-// fine [C, h, w] += the transpose of halve(., axis) applied to coarse.
+// fine [C, h, w] += the transpose of halve(., axis) applied to coarse; with assign, fine = it (no zero-filled
+// buffer to add into where a level on the way has no gradient of its own).
 template <typename scalar_t>
-void halve_adjoint(torch::Tensor& fine, const torch::Tensor& coarse, int axis) {
+void halve_adjoint(torch::Tensor& fine, const torch::Tensor& coarse, int axis, bool assign) {
   const int64_t C = fine.size(0), h = fine.size(1), w = fine.size(2);
   const Halving hv = halving(axis == 1 ? w : h);
   const int64_t ch = coarse.size(1), cw = coarse.size(2);
@@ -146,7 +147,7 @@ void halve_adjoint(torch::Tensor& fine, const torch::Tensor& coarse, int axis) {
           const auto& wt = hv.adj_w[x];
           scalar_t add = s[i[0]] * static_cast<scalar_t>(wt[0]);
           if (i[1] >= 0) add += s[i[1]] * static_cast<scalar_t>(wt[1]);
-          f[x] += add;
+          f[x] = assign ? add : f[x] + add;
         }
       } else {
         const auto& i = hv.adj_idx[y];
@@ -156,7 +157,12 @@ void halve_adjoint(torch::Tensor& fine, const torch::Tensor& coarse, int axis) {
         if (i[1] >= 0) {
           const scalar_t* s1 = pc + (c * ch + i[1]) * cw;
           const scalar_t w1 = static_cast<scalar_t>(wt[1]);
-          for (int64_t x = 0; x < w; ++x) f[x] += s0[x] * w0 + s1[x] * w1;
+          if (assign)
+            for (int64_t x = 0; x < w; ++x) f[x] = s0[x] * w0 + s1[x] * w1;
+          else
+            for (int64_t x = 0; x < w; ++x) f[x] += s0[x] * w0 + s1[x] * w1;
+        } else if (assign) {
+          for (int64_t x = 0; x < w; ++x) f[x] = s0[x] * w0;
         } else {
           for (int64_t x = 0; x < w; ++x) f[x] += s0[x] * w0;
         }
@@ -273,8 +279,8 @@ torch::Tensor ripmap_adjoint(std::vector<torch::Tensor> grads, int64_t n_u, int6
         const torch::Tensor& g = grads[j * n_u + i];
         if (acc.defined()) {
           auto [h, w] = size_of(i, j);
-          torch::Tensor fine = present(g) ? g.contiguous() : torch::zeros({C, h, w}, any.options());
-          halve_adjoint<scalar_t>(fine, acc, 1);
+          torch::Tensor fine = present(g) ? g.contiguous() : torch::empty({C, h, w}, any.options());
+          halve_adjoint<scalar_t>(fine, acc, 1, !present(g));
           acc = fine;
         } else if (present(g)) {
           acc = g.contiguous();
@@ -282,8 +288,8 @@ torch::Tensor ripmap_adjoint(std::vector<torch::Tensor> grads, int64_t n_u, int6
       }
       if (col.defined()) {
         auto [h, w] = size_of(0, j);
-        torch::Tensor fine = acc.defined() ? acc : torch::zeros({C, h, w}, any.options());
-        halve_adjoint<scalar_t>(fine, col, 0);
+        torch::Tensor fine = acc.defined() ? acc : torch::empty({C, h, w}, any.options());
+        halve_adjoint<scalar_t>(fine, col, 0, !acc.defined());
         col = fine;
       } else if (acc.defined()) {
         col = acc;
