@@ -13,7 +13,7 @@ The ripmap / table is built inside every timed call, as in training.
 Prints a markdown table and, with ``--out``, writes it there.
 
     python -m experiments.bench.bench_box_filters [--res 128] [--repeats 5] [--threads 1] [--scenes all]
-        [--out docs/bench_box_filters.md]
+        [--entries sat,ripmap] [--out docs/bench_box_filters.md]
 """
 from __future__ import annotations
 
@@ -61,15 +61,21 @@ def main(argv=None) -> str:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--scenes", default="all", help="all | plane | sphere | spot")
+    ap.add_argument("--entries", default=None,
+                    help="comma-separated labels to time (default all; anisotropic-16 is always added)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     scenes = build_scenes(args.res, args.scenes, ss_rates=())
-    labels = [e[0] for e in ENTRIES]
+    entries = ENTRIES
+    if args.entries:
+        keep = set(args.entries.split(",")) | {"anisotropic-16"}
+        entries = tuple(e for e in ENTRIES if e[0] in keep)
+    labels = [e[0] for e in entries]
     rows = []
     ratios: dict[str, list[float]] = {label: [] for label in labels}
     for scene in scenes:
-        fns = [entry_fns(scene, f, b, x) for _, f, b, x in ENTRIES]
+        fns = [entry_fns(scene, f, b, x) for _, f, b, x in entries]
         timed = time_interleaved([f for f, _ in fns] + [fb for _, fb in fns], args.repeats, shuffle=True)
         fwd = [t.median for t in timed[:len(fns)]]
         fb = [t.median for t in timed[len(fns):]]
