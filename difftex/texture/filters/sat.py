@@ -227,9 +227,11 @@ class _NativeBoxSums(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, texture: Tensor, pu: Tensor, cu: Tensor, pv: Tensor, cv: Tensor) -> Tensor:
-        jac = any(ctx.needs_input_grad[1:])
+        need = ctx.needs_input_grad
+        # The coefficients need a gradient only under clamp (the overshoot terms); without it the kernel skips
+        # terms with a zero coefficient (a repeat / mirror box that does not wrap reads 4 corners, not 9).
         res = native.load().sat_forward(texture[0].contiguous(), pu.contiguous(), cu.contiguous(), pv.contiguous(),
-                                        cv.contiguous(), jacobians=jac)
+                                        cv.contiguous(), jacobians=any(need[1:]), coef_grads=need[2] or need[4])
         ctx.save_for_backward(texture, pu, cu, pv, cv, *res[1:])
         return res[0]
 

@@ -17,10 +17,12 @@ namespace difftex {
 // (float32 / float64) at positions pu [M, Ku], pv [M, Kv] with coefficients
 // cu, cv (float64, K <= 4). Forward -> {out [C, M] float64} or, with
 // jacobians, {out, d out / d pu, d out / d cu [C, M, Ku], d out / d pv,
-// d out / d cv [C, M, Kv]}; backward -> the texture's gradient [C, H, W]
-// (its dtype) from grad [C, M] float64.
+// d out / d cv [C, M, Kv]}; without coef_grads the coefficients'
+// Jacobians are zero and terms with a zero coefficient are not read.
+// Backward -> the texture's gradient [C, H, W] (its dtype) from grad [C, M]
+// float64.
 std::vector<torch::Tensor> sat_forward(torch::Tensor texture, torch::Tensor pu, torch::Tensor cu, torch::Tensor pv,
-                                       torch::Tensor cv, bool jacobians);
+                                       torch::Tensor cv, bool jacobians, bool coef_grads);
 torch::Tensor sat_backward(torch::Tensor texture, torch::Tensor pu, torch::Tensor cu, torch::Tensor pv,
                            torch::Tensor cv, torch::Tensor grad);
 

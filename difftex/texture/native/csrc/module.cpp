@@ -134,7 +134,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   // sat.cpp: the summed-area table's box sums (filters/sat.py's native path).
   m.def("sat_forward", &sat_forward, "summed-area-table box sums, forward (and the per-point Jacobians)",
         py::arg("texture"), py::arg("pu"), py::arg("cu"), py::arg("pv"), py::arg("cv"), py::kw_only(),
-        py::arg("jacobians") = false);
+        py::arg("jacobians") = false, py::arg("coef_grads") = true);
   m.def("sat_backward", &sat_backward, "summed-area-table box sums, the texture's gradient", py::arg("texture"),
         py::arg("pu"), py::arg("cu"), py::arg("pv"), py::arg("cv"), py::arg("grad"));
   // ripmap.cpp: the ripmap's build, read and adjoint (filters/ripmap.py's native path).

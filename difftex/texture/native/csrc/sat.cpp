@@ -149,7 +149,7 @@ void build_table(const scalar_t* f, int64_t C, int64_t H, int64_t W, double* S) 
 }  // namespace
 
 std::vector<torch::Tensor> sat_forward(torch::Tensor texture, torch::Tensor pu, torch::Tensor cu, torch::Tensor pv,
-                                       torch::Tensor cv, bool jacobians) {
+                                       torch::Tensor cv, bool jacobians, bool coef_grads) {
   check_terms(texture, pu, cu, pv, cv);
   const int64_t C = texture.size(0), H = texture.size(1), W = texture.size(2);
   const int64_t M = pu.size(0), Ku = pu.size(1), Kv = pv.size(1), row = (W + 1) * C;
@@ -184,10 +184,14 @@ std::vector<torch::Tensor> sat_forward(torch::Tensor texture, torch::Tensor pu, 
         double total = 0.0;
         double dpu[4] = {0, 0, 0, 0}, dcu[4] = {0, 0, 0, 0}, dpv[4] = {0, 0, 0, 0}, dcv[4] = {0, 0, 0, 0};
         for (int64_t l = 0; l < Kv; ++l) {
+          // A term with a zero coefficient adds nothing but its coefficient's gradient (e.g. the whole periods
+          // of a repeat box that does not wrap): skipped where that is not asked for.
+          if (!coef_grads && cvl[l] == 0) continue;
           const double* r0 = tab + y[l].i * row + c;
           const double* r1 = r0 + row;
           const double sy = y[l].s;
           for (int64_t k = 0; k < Ku; ++k) {
+            if (!coef_grads && cuk[k] == 0) continue;
             const int64_t a = x[k].i * C;
             const double sx = x[k].s;
             const double t00 = r0[a], t01 = r0[a + C], t10 = r1[a], t11 = r1[a + C];
@@ -198,8 +202,10 @@ std::vector<torch::Tensor> sat_forward(torch::Tensor texture, torch::Tensor pu, 
               const double ddx = (1 - sy) * (t01 - t00) + sy * (t11 - t10);
               dpu[k] += cuk[k] * cvl[l] * ddx;
               dpv[l] += cuk[k] * cvl[l] * (bot - top);
-              dcu[k] += cvl[l] * val;
-              dcv[l] += cuk[k] * val;
+              if (coef_grads) {
+                dcu[k] += cvl[l] * val;
+                dcv[l] += cuk[k] * val;
+              }
             }
           }
         }
@@ -254,9 +260,11 @@ torch::Tensor sat_backward(torch::Tensor texture, torch::Tensor pu, torch::Tenso
   auto for_entries = [&](auto&& emit) {
     for (int64_t e = 0; e < M; ++e)
       for (int64_t l = 0; l < Kv; ++l) {
-        const Cell y = cell(ppv[e * Kv + l], H);
         const double cvl = pcv[e * Kv + l];
+        if (cvl == 0) continue;  // a term with a zero coefficient scatters nothing
+        const Cell y = cell(ppv[e * Kv + l], H);
         for (int64_t k = 0; k < Ku; ++k) {
+          if (pcu[e * Ku + k] == 0) continue;
           const Cell x = cell(ppu[e * Ku + k], W);
           const double w = pcu[e * Ku + k] * cvl;
           emit(y.i, Entry{e, x.i, w * (1 - x.s) * (1 - y.s), w * x.s * (1 - y.s)});
