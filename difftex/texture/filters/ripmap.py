@@ -39,9 +39,9 @@ from .. import native
 from ..lod import footprint, level, log2_extents
 from ..pyramid.ripmap import Ripmap, build_ripmap, ripmap_counts
 from ..taps import levels_read
+from ..wrap import WRAP_CODES
 from .separable import separable_sample
 from .trilinear import mip_blend, per_level
-from ..wrap import WRAP_CODES
 
 
 def ripmap_levels(uv_dx: Tensor, uv_dy: Tensor, lod_bias: Union[float, Tensor], height: int, width: int,
