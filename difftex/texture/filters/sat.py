@@ -45,6 +45,14 @@ dtype. Memory: the table is 8 bytes a texel and channel, made anew on each
 call; the backward keeps only the texture and the [M, K] positions and
 coefficients (``_BoxSums``), and its texture gradient is the adjoint of the
 prefix sums, a suffix sum of the scattered weights.
+
+On the CPU the box sums run on the native kernel (``_NativeBoxSums``,
+``native/csrc/sat.cpp``: the table built in one threaded pass, the reads,
+and the adjoint as one scatter and one suffix-sum pass, where torch needs
+two cumsums, grid_sample and its backward on a texture-sized float64
+buffer); ``_BoxSums`` (torch ops) serves CUDA and ``difftex.backend(
+"reference")``, and ``box_sums_reference`` double backward. The wrap terms
+above stay torch ops on [M, K] tensors in every case.
 """
 from __future__ import annotations
 
@@ -55,6 +63,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .. import native
 from ..lod import footprint, level, log2_extents
 from ..wrap import drop_periods, floor_index
 
@@ -205,6 +214,44 @@ class _BoxSums(torch.autograd.Function):
         return (grad_tex, *(torch.cat(parts[k]) if need[k] else None for k in range(1, 5)))
 
 
+class _NativeBoxSums(torch.autograd.Function):
+    """``_BoxSums`` on the native CPU kernel (``native/csrc/sat.cpp``): the same inputs and output.
+
+    The forward builds the float64 table, reads it and, where a position or
+    coefficient needs a gradient, returns the per-point Jacobians ([C, M, K]
+    each): the backward then needs no table, only the texture's adjoint (a
+    scatter and a suffix sum in the kernel) and four small contractions.
+    What is saved: the texture (by reference), the [M, K] inputs and the
+    Jacobians, never a texture-sized buffer.
+    """
+
+    @staticmethod
+    def forward(ctx, texture: Tensor, pu: Tensor, cu: Tensor, pv: Tensor, cv: Tensor) -> Tensor:
+        need = ctx.needs_input_grad
+        # The coefficients need a gradient only under clamp (the overshoot terms); without it the kernel skips
+        # terms with a zero coefficient (a repeat / mirror box that does not wrap reads 4 corners, not 9).
+        res = native.load().sat_forward(texture[0].contiguous(), pu.contiguous(), cu.contiguous(), pv.contiguous(),
+                                        cv.contiguous(), jacobians=any(need[1:]), coef_grads=need[2] or need[4])
+        ctx.save_for_backward(texture, pu, cu, pv, cv, *res[1:])
+        return res[0]
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        texture, pu, cu, pv, cv, *jac = ctx.saved_tensors
+        need = ctx.needs_input_grad
+        if torch.is_grad_enabled():
+            # Double backward (create_graph=True): the differentiable torch reference.
+            return native.double_backward(lambda: box_sums_reference(texture, pu, cu, pv, cv),
+                                          (texture, pu, cu, pv, cv), need, grad)
+        grad_tex = None
+        if need[0]:
+            grad_tex = native.load().sat_backward(texture[0].contiguous(), pu.contiguous(), cu.contiguous(),
+                                                  pv.contiguous(), cv.contiguous(), grad).unsqueeze(0)
+        g = grad.unsqueeze(-1)
+        rest = [(g * j).sum(0) if n else None for j, n in zip(jac, need[1:])] if jac else [None] * 4
+        return (grad_tex, *rest)
+
+
 def _axis_terms(x0: Tensor, x1: Tensor, n: int, mode: str) -> tuple[Tensor, Tensor]:
     """Positions (in [0, n]) and coefficients [M, K] of ``G_ext(x1) - G_ext(x0)`` along one axis (module docstring)."""
     if mode == "border":
@@ -273,7 +320,8 @@ def sat_points(texture: Tensor, uv: Tensor, uv_dx: Tensor, uv_dy: Tensor, lod_bi
     y0, y1 = _box_edges(safe[:, 1], ext[:, 1], lod_bias, H, wrap_v)
     pu, cu = _axis_terms(x0, x1, W, wrap_u)
     pv, cv = _axis_terms(y0, y1, H, wrap_v)
-    sums = _BoxSums.apply(texture, pu, cu, pv, cv)
+    box = _NativeBoxSums if native.kernel(texture) is not None else _BoxSums
+    sums = box.apply(texture, pu, cu, pv, cv)
     area = (x1 - x0) * (y1 - y0)
     if "border" in (wrap_u, wrap_v):
         inner = ((x1.clamp(0, W) - x0.clamp(0, W)) if wrap_u == "border" else x1 - x0) * \

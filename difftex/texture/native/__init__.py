@@ -24,6 +24,8 @@ The sources, one per kernel: ``csrc/taps.cpp`` (the taps, forward and
 backward), ``csrc/front.cpp``, ``csrc/box.cpp``, ``csrc/ewa.cpp``,
 ``csrc/single.cpp`` (the single-level reads), ``csrc/cube.cpp`` (the cube-map
 front end and read of ``difftex.envmap.cubemap``, declared in ``csrc/cube.h``),
+``csrc/sat.cpp`` and ``csrc/ripmap.cpp`` (the box filters "sat" and "ripmap":
+table / level build, read and adjoint, declared in ``csrc/boxes.h``),
 with ``csrc/bands.h`` (the
 threaded, lock-free texture-gradient scatter of single.cpp and taps.cpp),
 ``csrc/common.h`` (the shared inline helpers and the constants mirrored from

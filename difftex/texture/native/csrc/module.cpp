@@ -4,6 +4,7 @@
 // the Python reference, exported so that tests/texture/native/test_native.py
 // checks each against the Python constant it mirrors. The only translation
 // unit that defines the module.
+#include "boxes.h"
 #include "common.h"
 #include "cube.h"
 #include "kernels.h"
@@ -134,4 +135,21 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("ring_idx"), py::arg("ring_w"), py::arg("face"), py::arg("uv"), py::arg("D"), py::arg("grad"),
         py::arg("nearest"), py::arg("d_grad"), py::kw_only(), py::arg("need_levels"), py::arg("need_uv"),
         py::arg("need_D"));
+
+  // sat.cpp: the summed-area table's box sums (filters/sat.py's native path).
+  m.def("sat_forward", &sat_forward, "summed-area-table box sums, forward (and the per-point Jacobians)",
+        py::arg("texture"), py::arg("pu"), py::arg("cu"), py::arg("pv"), py::arg("cv"), py::kw_only(),
+        py::arg("jacobians") = false, py::arg("coef_grads") = true);
+  m.def("sat_backward", &sat_backward, "summed-area-table box sums, the texture's gradient", py::arg("texture"),
+        py::arg("pu"), py::arg("cu"), py::arg("pv"), py::arg("cv"), py::arg("grad"));
+  // ripmap.cpp: the ripmap's build, read and adjoint (filters/ripmap.py's native path).
+  m.def("ripmap_build", &ripmap_build, "ripmap levels (flat, j * n_u + i) of the wanted levels", py::arg("texture"),
+        py::arg("n_u"), py::arg("n_v"), py::arg("wanted"));
+  m.def("ripmap_adjoint", &ripmap_adjoint, "the texture's gradient from the ripmap levels' gradients",
+        py::arg("grads"), py::arg("n_u"), py::arg("n_v"), py::arg("H"), py::arg("W"));
+  m.def("ripmap_read", &ripmap_read, "ripmap filter read, forward", py::arg("levels"), py::arg("n_u"), py::arg("uv"),
+        py::arg("Du"), py::arg("Dv"), py::arg("opts"));
+  m.def("ripmap_read_backward", &ripmap_read_backward, "ripmap filter read, first-order backward", py::arg("levels"),
+        py::arg("n_u"), py::arg("uv"), py::arg("Du"), py::arg("Dv"), py::arg("grad"), py::arg("opts"), py::kw_only(),
+        py::arg("need_levels"), py::arg("need_uv"), py::arg("need_D"));
 }
