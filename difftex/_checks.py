@@ -68,7 +68,7 @@ def check_index(name: str, idx: object, num_rows: int, rows_doc: str, device: to
         raise ValueError(f"{name} must have shape [F, 3], got {tuple(idx.shape)}")
     idx = idx.to(device=device, dtype=torch.int64)
     if idx.numel() > 0:
-        lo, hi = int(idx.min()), int(idx.max())
+        lo, hi = (int(v) for v in torch.aminmax(idx))  # one pass, not two
         if lo < 0 or hi >= num_rows:
             raise ValueError(f"{name} indices must lie in [0, {num_rows - 1}] ({rows_doc}), got values in [{lo}, {hi}]")
     return idx
