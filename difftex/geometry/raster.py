@@ -639,10 +639,10 @@ def _visibility(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool
     """
     from ..texture import native
 
-    pos = pos.detach().to(torch.float64)
+    pos = pos.detach()
     B = pos.shape[0]
     mod = native.kernel(pos)
-    if mod is not None:
+    if mod is not None:  # float32 is read as it is: the kernel converts each corner exactly
         empty_z = torch.empty(0, dtype=torch.float64)
         fz, fid = floor if floor is not None else (empty_z, torch.empty(0, dtype=torch.int64))
         tri_id, zbuf = mod.raster(pos.contiguous(), faces.contiguous(), H, W, cull_backfaces,
@@ -650,6 +650,7 @@ def _visibility(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool
         if layers > 1:
             return tri_id.view(layers, B, H, W), zbuf
         return tri_id.view(B, H, W), zbuf
+    pos = pos.to(torch.float64)
     F = faces.shape[0]
     zbuf = torch.full((B * H * W,), float("inf"), dtype=torch.float64, device=pos.device)
     ibuf = torch.full((B * H * W,), _ID_EMPTY, dtype=torch.int64, device=pos.device)

@@ -61,7 +61,7 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
              const ReadOptions& opts, const EwaNeeds& need);
 
 // raster.cpp: rasterize's visibility pass (geometry/raster.py _visibility).
-// pos [B, V, 4] float64, faces [F, 3] int64; bits: sub-pixel bits of the
+// pos [B, V, 4] float32 / float64 (computed in float64), faces [F, 3] int64; bits: sub-pixel bits of the
 // exact path (0: float path only); floor_z / floor_id [B * H * W] or empty
 // (depth peeling). -> (ids [B * H * W] int64, -1 background, or with count
 // the number of covering fragments; depth [B * H * W] float64, +inf

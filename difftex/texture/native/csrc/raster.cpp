@@ -26,6 +26,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <limits>
 #include <vector>
 
@@ -36,24 +37,75 @@ constexpr double kGuard = 536870912.0;  // 2^29: geometry/raster.py _GUARD
 constexpr int64_t kEmpty = std::numeric_limits<int64_t>::max();
 constexpr int64_t kBand = 8;  // rows a band
 
-enum Kind : uint8_t { DEAD = 0, EXACT = 1, FLOAT = 2 };
+// A triangle that covers something, and the bands of rows it touches; in
+// the bands' lists its id, with kFloatBit set where it takes the float path.
+struct Live {
+  int32_t f, band0, band1;
+};
+constexpr int32_t kFloatBit = int32_t(1) << 30;
 
-// Per vertex, split by use so that the per-triangle pass over a big mesh
-// touches few bytes a corner: the outcode (bit 7: snapped) and the snapped
-// position (|q| <= 2^29 fits int32) for every triangle, the NDC and the
-// float path's scale only for the triangles that survive.
+// Per vertex, what the per-triangle pass over a big mesh reads, in one
+// 12-byte record (one cache line a corner: the corners of a dense mesh are
+// scattered, so the pass is bound by these misses): the snapped position
+// (|q| <= 2^29 fits int32) and the outcode (bit 7: snapped). The NDC of the
+// depth plane and the float path's scale are recomputed from pos for the
+// few triangles that survive the coverage test (writing them per vertex
+// cost more than that).
 constexpr uint8_t kSnapped = 0x80;
 
-struct VertCold {
-  double nx, ny, nz;  // NDC (the exact path's depth plane), where snapped
-  double s;           // power-of-two scale of the float path
+struct Vert {
+  int32_t x, y;
+  uint8_t code;
 };
 
 struct Exact {
+  int64_t x[3], y[3];
   int64_t a[3], b[3], c[3], thr[3];
   double z0, x0, y0, zx, zy;
   int64_t c0, c1, r0, r1;
 };
+
+// 2^-e where frexp(m) = f 2^e (f in [0.5, 1)): the float path's scale of a
+// vertex whose largest |coordinate| is m >= 0, from the exponent bits (the
+// libm frexp / ldexp calls cost more than the rest of the vertex pass);
+// zero, subnormal, non-finite or huge m take the libm route.
+inline double pow2_scale(double m) {
+  uint64_t bits;
+  std::memcpy(&bits, &m, 8);
+  const int be = int(bits >> 52) & 0x7ff;
+  const int rb = 2045 - be;  // biased exponent of 2^-(be - 1022)
+  if (be == 0 || be == 0x7ff || rb <= 0) {
+    int ex = 0;
+    std::frexp(m, &ex);
+    return std::ldexp(1.0, -ex);
+  }
+  const uint64_t r = uint64_t(rb) << 52;
+  double out;
+  std::memcpy(&out, &r, 8);
+  return out;
+}
+
+// The corners of a dense mesh are scattered in memory: both triangle
+// loops ask for the corner records of the triangle kAhead places on, so
+// that their cache misses overlap instead of stalling one by one.
+constexpr int64_t kAhead = 8;
+#if defined(__GNUC__) || defined(__clang__)
+#define RASTER_PREFETCH(addr) __builtin_prefetch((addr), 0, 3)
+#else
+#define RASTER_PREFETCH(addr) ((void)(addr))
+#endif
+
+inline double max_abs4(const double* p) {
+  return std::max({std::abs(p[0]), std::abs(p[1]), std::abs(p[2]), std::abs(p[3])});
+}
+
+// nearbyint in the default rounding mode (to nearest, ties to even) for
+// |v| <= 2^51: adding 1.5 * 2^52 leaves no fraction bits (an inline add
+// where the baseline x86-64 target calls libm's nearbyint).
+inline double round_even(double v) {
+  constexpr double kMagic = 6755399441055744.0;
+  return (v + kMagic) - kMagic;
+}
 
 struct Float {
   double a[3], b[3], c[3], thr[3], zc[3];
@@ -63,57 +115,61 @@ struct Float {
 inline int64_t floor_div(int64_t a, int64_t d) { return a >= 0 ? a / d : -((-a + d - 1) / d); }
 
 struct Ctx {
-  const double* pos;  // [V, 4] of this batch item
+  const void* pos;  // [V, 4] of this batch item, float64 or (f32) float32
+  bool f32;
   const int64_t* faces;
-  const uint8_t* code;
-  const int32_t* q;  // [V, 2]
-  const VertCold* cold;
+  const Vert* vert;
   int64_t H, W, S;
   bool cull;
+
+  // Vertex v's clip coordinates, exactly, as float64 (float32 input is
+  // read as it is: no converted copy of a big mesh's positions).
+  void corner(int64_t v, double* p) const {
+    if (f32) {
+      const float* q = static_cast<const float*>(pos) + 4 * v;
+      for (int i = 0; i < 4; ++i) p[i] = q[i];
+    } else {
+      const double* q = static_cast<const double*>(pos) + 4 * v;
+      for (int i = 0; i < 4; ++i) p[i] = q[i];
+    }
+  }
+  const char* row(int64_t v) const { return static_cast<const char*>(pos) + (f32 ? 16 : 32) * v; }
 };
 
-// Exact-path setup (raster.py _prepare_exact); false where the triangle
-// covers nothing. With box_only, only what the binning needs (edges, the
-// culling and the pixel-centre box, all integer): the depth plane and its
-// finiteness test wait for the rasterizing pass.
-bool setup_exact(const Ctx& cx, int64_t f, Exact& t, bool box_only = false) {
+// Exact-path setup (raster.py _prepare_exact) in three steps, each false
+// where the triangle covers nothing. exact_box: the snapped corners and the
+// box of pixel centres they span, all integer, no division: most triangles
+// of a dense mesh hold no centre and stop here.
+inline bool exact_box(const Ctx& cx, int64_t f, Exact& t) {
   const int64_t* fv = cx.faces + 3 * f;
-  int64_t x[3], y[3];
   for (int i = 0; i < 3; ++i) {
-    x[i] = cx.q[2 * fv[i]];
-    y[i] = cx.q[2 * fv[i] + 1];
+    const Vert& v = cx.vert[fv[i]];
+    t.x[i] = v.x;
+    t.y[i] = v.y;
   }
-  for (int i = 0; i < 3; ++i) {
-    const int j = (i + 1) % 3, k = (i + 2) % 3;
-    t.a[i] = y[k] - y[j];
-    t.b[i] = x[j] - x[k];
-    t.c[i] = -(t.a[i] * x[j] + t.b[i] * y[j]);
-  }
-  const int64_t area = t.a[0] * x[0] + t.b[0] * y[0] + t.c[0];
-  if (cx.cull ? area <= 0 : area == 0) return false;
-  // The pixel-centre box first: most triangles of a dense mesh hold no
-  // centre, and this needs no division.
   // Floor / ceiling division by 2h = 2^S as arithmetic shifts (an int64
   // idiv per side cost more than the rest of the test).
   const int64_t h = int64_t(1) << (cx.S - 1);
-  const int64_t xmin = std::min({x[0], x[1], x[2]}), xmax = std::max({x[0], x[1], x[2]});
-  const int64_t ymin = std::min({y[0], y[1], y[2]}), ymax = std::max({y[0], y[1], y[2]});
+  const int64_t xmin = std::min({t.x[0], t.x[1], t.x[2]}), xmax = std::max({t.x[0], t.x[1], t.x[2]});
+  const int64_t ymin = std::min({t.y[0], t.y[1], t.y[2]}), ymax = std::max({t.y[0], t.y[1], t.y[2]});
   t.c0 = std::max<int64_t>(0, -((-(xmin + (cx.W - 1) * h)) >> cx.S));
   t.c1 = std::min<int64_t>(cx.W - 1, (xmax + (cx.W - 1) * h) >> cx.S);
   t.r0 = std::max<int64_t>(0, -((-(ymin + (cx.H - 1) * h)) >> cx.S));
   t.r1 = std::min<int64_t>(cx.H - 1, (ymax + (cx.H - 1) * h) >> cx.S);
-  if (!(t.c0 <= t.c1 && t.r0 <= t.r1)) return false;
-  if (box_only) return true;
-  const VertCold &v0 = cx.cold[fv[0]], &v1 = cx.cold[fv[1]], &v2 = cx.cold[fv[2]];
-  const double dx1 = v1.nx - v0.nx, dy1 = v1.ny - v0.ny, dz1 = v1.nz - v0.nz;
-  const double dx2 = v2.nx - v0.nx, dy2 = v2.ny - v0.ny, dz2 = v2.nz - v0.nz;
-  const double d = dx1 * dy2 - dx2 * dy1;
-  t.zx = (dz1 * dy2 - dz2 * dy1) / d;
-  t.zy = (dx1 * dz2 - dx2 * dz1) / d;
-  if (!std::isfinite(t.zx) || !std::isfinite(t.zy)) return false;
-  t.z0 = v0.nz;
-  t.x0 = v0.nx;
-  t.y0 = v0.ny;
+  return t.c0 <= t.c1 && t.r0 <= t.r1;
+}
+
+// exact_edges (after exact_box): the edge functions oriented so that the
+// inside is >= thr (the top-left rule), culling and degeneracy.
+inline bool exact_edges(const Ctx& cx, Exact& t) {
+  for (int i = 0; i < 3; ++i) {
+    const int j = (i + 1) % 3, k = (i + 2) % 3;
+    t.a[i] = t.y[k] - t.y[j];
+    t.b[i] = t.x[j] - t.x[k];
+    t.c[i] = -(t.a[i] * t.x[j] + t.b[i] * t.y[j]);
+  }
+  const int64_t area = t.a[0] * t.x[0] + t.b[0] * t.y[0] + t.c[0];
+  if (cx.cull ? area <= 0 : area == 0) return false;
   const int64_t sgn = area > 0 ? 1 : -1;
   for (int i = 0; i < 3; ++i) {
     t.a[i] *= sgn;
@@ -124,6 +180,50 @@ bool setup_exact(const Ctx& cx, int64_t f, Exact& t, bool box_only = false) {
   return true;
 }
 
+// Whether a small box (at most kProbe centres) holds a centre the triangle
+// covers: the binning pass drops the many sliver and sub-pixel triangles
+// of a dense mesh whose box holds centres they miss, so that the bands see
+// only triangles that cover something.
+constexpr int64_t kProbe = 4;
+inline bool exact_covers_any(const Ctx& cx, const Exact& t) {
+  if ((t.c1 - t.c0 + 1) * (t.r1 - t.r0 + 1) > kProbe) return true;
+  const int64_t h = int64_t(1) << (cx.S - 1);
+  for (int64_t r = t.r0; r <= t.r1; ++r) {
+    const int64_t qy = (2 * r + 1 - cx.H) * h;
+    for (int64_t c = t.c0; c <= t.c1; ++c) {
+      const int64_t qx = (2 * c + 1 - cx.W) * h;
+      if (t.a[0] * qx + t.c[0] + t.b[0] * qy >= t.thr[0] && t.a[1] * qx + t.c[1] + t.b[1] * qy >= t.thr[1] &&
+          t.a[2] * qx + t.c[2] + t.b[2] * qy >= t.thr[2])
+        return true;
+    }
+  }
+  return false;
+}
+
+// exact_plane (after exact_edges): the float64 NDC depth plane of the
+// unsnapped corners, anchored at corner 0; false where it is not finite.
+inline bool exact_plane(const Ctx& cx, int64_t f, Exact& t) {
+  const int64_t* fv = cx.faces + 3 * f;
+  double nx[3], ny[3], nz[3];
+  for (int i = 0; i < 3; ++i) {
+    double p[4];
+    cx.corner(fv[i], p);
+    nx[i] = p[0] / p[3];
+    ny[i] = p[1] / p[3];
+    nz[i] = p[2] / p[3];
+  }
+  const double dx1 = nx[1] - nx[0], dy1 = ny[1] - ny[0], dz1 = nz[1] - nz[0];
+  const double dx2 = nx[2] - nx[0], dy2 = ny[2] - ny[0], dz2 = nz[2] - nz[0];
+  const double d = dx1 * dy2 - dx2 * dy1;
+  t.zx = (dz1 * dy2 - dz2 * dy1) / d;
+  t.zy = (dx1 * dz2 - dx2 * dz1) / d;
+  if (!std::isfinite(t.zx) || !std::isfinite(t.zy)) return false;
+  t.z0 = nz[0];
+  t.x0 = nx[0];
+  t.y0 = ny[0];
+  return true;
+}
+
 // Float-path setup (raster.py _prepare_float); the bounding box is the
 // projected one where every corner is in front of the near plane, else the
 // whole screen (the torch path clips it tighter: both are conservative).
@@ -131,8 +231,9 @@ bool setup_float(const Ctx& cx, int64_t f, Float& t) {
   const int64_t* fv = cx.faces + 3 * f;
   double X[3], Y[3], Z[3], Wc[3];
   for (int i = 0; i < 3; ++i) {
-    const double* p = cx.pos + 4 * fv[i];
-    const double s = cx.cold[fv[i]].s;
+    double p[4];
+    cx.corner(fv[i], p);
+    const double s = pow2_scale(max_abs4(p));
     X[i] = p[0] * s;
     Y[i] = p[1] * s;
     Z[i] = p[2] * s;
@@ -191,8 +292,9 @@ bool setup_float(const Ctx& cx, int64_t f, Float& t) {
 std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor faces, int64_t H, int64_t W,
                                                 bool cull, int64_t bits, torch::Tensor floor_z,
                                                 torch::Tensor floor_id, bool count, int64_t layers) {
-  TORCH_CHECK(pos.device().is_cpu() && pos.scalar_type() == torch::kFloat64 && pos.dim() == 3 && pos.size(2) == 4,
-              "raster: pos must be a CPU float64 tensor [B, V, 4]");
+  TORCH_CHECK(pos.device().is_cpu() && (pos.scalar_type() == torch::kFloat64 || pos.scalar_type() == torch::kFloat32) &&
+                  pos.dim() == 3 && pos.size(2) == 4,
+              "raster: pos must be a CPU float32 or float64 tensor [B, V, 4]");
   TORCH_CHECK(faces.device().is_cpu() && faces.scalar_type() == torch::kInt64 && faces.dim() == 2 &&
                   faces.size(1) == 3,
               "raster: faces must be a CPU int64 tensor [F, 3]");
@@ -200,6 +302,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
   pos = pos.contiguous();
   faces = faces.contiguous();
   const int64_t B = pos.size(0), V = pos.size(1), F = faces.size(0), HW = H * W;
+  TORCH_CHECK(F < kFloatBit, "raster: at most 2^30 - 1 triangles");
   const bool has_floor = floor_z.numel() > 0;
   TORCH_CHECK(layers >= 1 && (layers == 1 || (!has_floor && !count)),
               "raster: layers >= 1, and 1 with a floor or a count");
@@ -225,73 +328,67 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
   for (int64_t c = 0; c < W; ++c) xs[c] = (double(c) + 0.5) * (2.0 / double(W)) - 1.0;
   for (int64_t r = 0; r < H; ++r) ys[r] = -((double(r) + 0.5) * (2.0 / double(H)) - 1.0);
   const int64_t nb = (H + kBand - 1) / kBand;
-  std::vector<uint8_t> vcode(V);
-  std::vector<int32_t> vq(2 * V);
-  std::vector<VertCold> vcold(V);
-  std::vector<uint8_t> kind(F);
-  std::vector<int32_t> band0(F), band1(F);
+  std::vector<Vert> vert(V);
 
   for (int64_t bi = 0; bi < B; ++bi) {
-    const double* P = pos.data_ptr<double>() + bi * V * 4;
+    const bool f32 = pos.scalar_type() == torch::kFloat32;
+    const char* P = static_cast<const char*>(pos.data_ptr()) + bi * V * 4 * (f32 ? 4 : 8);
     // Vertices: the float path's scale and outcode, the exact path's snap.
+    const Ctx cx{P, f32, faces.data_ptr<int64_t>(), vert.data(), H, W, S, cull};
     at::parallel_for(0, V, 4096, [&](int64_t lo, int64_t hi) {
       for (int64_t v = lo; v < hi; ++v) {
-        const double* p = P + 4 * v;
-        VertCold& o = vcold[v];
-        int ex = 0;
-        std::frexp(std::max({std::abs(p[0]), std::abs(p[1]), std::abs(p[2]), std::abs(p[3])}), &ex);
-        o.s = std::ldexp(1.0, -ex);
-        const double X = p[0] * o.s, Y = p[1] * o.s, Z = p[2] * o.s, Wc = p[3] * o.s;
+        double p[4];
+        cx.corner(v, p);
+        const double s = pow2_scale(max_abs4(p));
+        const double X = p[0] * s, Y = p[1] * s, Z = p[2] * s, Wc = p[3] * s;
         uint8_t code = uint8_t((X > Wc) | ((X < -Wc) << 1) | ((Y > Wc) << 2) | ((Y < -Wc) << 3) | ((Z > Wc) << 4) |
                          ((Z < -Wc) << 5));
-        vq[2 * v] = vq[2 * v + 1] = 0;
+        Vert& o = vert[v];
+        o.x = o.y = 0;
         if (S > 0 && p[3] > 0) {
-          o.nx = p[0] / p[3];
-          o.ny = p[1] / p[3];
-          o.nz = p[2] / p[3];
-          const double fx = o.nx * sx, fy = o.ny * sy;
+          const double fx = (p[0] / p[3]) * sx, fy = (p[1] / p[3]) * sy;
           if (std::abs(fx) <= kGuard && std::abs(fy) <= kGuard) {
             code |= kSnapped;
-            vq[2 * v] = int32_t(std::nearbyint(fx));
-            vq[2 * v + 1] = int32_t(std::nearbyint(fy));
+            o.x = int32_t(round_even(fx));
+            o.y = int32_t(round_even(fy));
           }
         }
-        vcode[v] = code;
+        o.code = code;
       }
     });
-    const Ctx cx{P, faces.data_ptr<int64_t>(), vcode.data(), vq.data(), vcold.data(), H, W, S, cull};
-    // Triangles: which path, and the bands of rows they touch.
-    at::parallel_for(0, F, 2048, [&](int64_t lo, int64_t hi) {
-      Exact e;
-      Float fl;
-      for (int64_t f = lo; f < hi; ++f) {
-        const int64_t* fv = cx.faces + 3 * f;
-        const uint8_t c0 = vcode[fv[0]], c1 = vcode[fv[1]], c2 = vcode[fv[2]];
-        kind[f] = DEAD;
-        if (c0 & c1 & c2 & ~kSnapped) continue;
-        if (c0 & c1 & c2 & kSnapped) {
-          if (!setup_exact(cx, f, e, true)) continue;
-          kind[f] = EXACT;
-          band0[f] = int32_t(e.r0 / kBand);
-          band1[f] = int32_t(e.r1 / kBand);
-        } else {
-          if (!setup_float(cx, f, fl)) continue;
-          kind[f] = FLOAT;
-          band0[f] = int32_t(fl.r0 / kBand);
-          band1[f] = int32_t(fl.r1 / kBand);
-        }
-      }
-    });
-    // Binning: per chunk of triangles a count per band, then offsets so
-    // that every band lists its triangles in increasing id.
+    // Triangles, in chunks: which path, and the bands of rows they touch,
+    // listed per chunk for the few that survive (the binning then never
+    // scans the dead ones), with a count per band.
     const int64_t chunk = std::max<int64_t>(4096, (F + 63) / 64);
     const int64_t nch = std::max<int64_t>(1, (F + chunk - 1) / chunk);
     std::vector<int64_t> cnt(nch * nb, 0);
-    at::parallel_for(0, nch, 1, [&](int64_t lo, int64_t hi) {
-      for (int64_t ch = lo; ch < hi; ++ch)
-        for (int64_t f = ch * chunk; f < std::min(F, (ch + 1) * chunk); ++f)
-          if (kind[f] != DEAD)
-            for (int32_t b = band0[f]; b <= band1[f]; ++b) ++cnt[ch * nb + b];
+    std::vector<std::vector<Live>> live(nch);
+    at::parallel_for(0, nch, 1, [&](int64_t lo_ch, int64_t hi_ch) {
+      Exact e;
+      Float fl;
+      for (int64_t ch = lo_ch; ch < hi_ch; ++ch) {
+        const int64_t lo = ch * chunk, hi = std::min(F, lo + chunk);
+        std::vector<Live>& out = live[ch];
+        out.clear();
+        for (int64_t f = lo; f < hi; ++f) {
+          if (f + kAhead < hi) {
+            const int64_t* fa = cx.faces + 3 * (f + kAhead);
+            for (int i = 0; i < 3; ++i) RASTER_PREFETCH(cx.vert + fa[i]);
+          }
+          const int64_t* fv = cx.faces + 3 * f;
+          const uint8_t c0 = cx.vert[fv[0]].code, c1 = cx.vert[fv[1]].code, c2 = cx.vert[fv[2]].code;
+          if (c0 & c1 & c2 & ~kSnapped) continue;
+          if (c0 & c1 & c2 & kSnapped) {
+            if (!exact_box(cx, f, e) || !exact_edges(cx, e) || !exact_covers_any(cx, e)) continue;
+            out.push_back({int32_t(f), int32_t(e.r0 / kBand), int32_t(e.r1 / kBand)});
+          } else {
+            if (!setup_float(cx, f, fl)) continue;
+            out.push_back({int32_t(f) | kFloatBit, int32_t(fl.r0 / kBand), int32_t(fl.r1 / kBand)});
+          }
+        }
+        for (const Live& t : out)
+          for (int32_t b = t.band0; b <= t.band1; ++b) ++cnt[ch * nb + b];
+      }
     });
     std::vector<int64_t> start(nb + 1, 0);
     int64_t total = 0;
@@ -307,9 +404,8 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     std::vector<int32_t> list(total);
     at::parallel_for(0, nch, 1, [&](int64_t lo, int64_t hi) {
       for (int64_t ch = lo; ch < hi; ++ch)
-        for (int64_t f = ch * chunk; f < std::min(F, (ch + 1) * chunk); ++f)
-          if (kind[f] != DEAD)
-            for (int32_t b = band0[f]; b <= band1[f]; ++b) list[cnt[ch * nb + b]++] = int32_t(f);
+        for (const Live& t : live[ch])
+          for (int32_t b = t.band0; b <= t.band1; ++b) list[cnt[ch * nb + b]++] = t.f;
     });
     // Bands: each thread owns its rows of the output.
     int64_t* oid = out_id + bi * HW;
@@ -355,9 +451,20 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
           is[k] = f;
         };
         for (int64_t li = start[band]; li < start[band + 1]; ++li) {
-          const int64_t f = list[li];
-          if (kind[f] == EXACT) {
-            if (!setup_exact(cx, f, e)) continue;  // a depth plane that is not finite
+          // Two steps ahead: the face row, then (its row now in cache) the
+          // corners' records and positions.
+          if (li + 2 * kAhead < start[band + 1])
+            RASTER_PREFETCH(cx.faces + 3 * int64_t(list[li + 2 * kAhead] & ~kFloatBit));
+          if (li + kAhead < start[band + 1]) {
+            const int64_t* fa = cx.faces + 3 * int64_t(list[li + kAhead] & ~kFloatBit);
+            for (int i = 0; i < 3; ++i) {
+              RASTER_PREFETCH(cx.vert + fa[i]);
+              RASTER_PREFETCH(cx.row(fa[i]));
+            }
+          }
+          const int64_t f = list[li] & ~kFloatBit;
+          if (!(list[li] & kFloatBit)) {
+            if (!exact_box(cx, f, e) || !exact_edges(cx, e) || !exact_plane(cx, f, e)) continue;
             const int64_t h = int64_t(1) << (S - 1), step = 2 * h;
             const int64_t r0 = std::max(e.r0, R0), r1 = std::min(e.r1, R1 - 1);
             const int64_t qx0 = (2 * e.c0 + 1 - W) * h;
