@@ -28,6 +28,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <type_traits>
 #include <vector>
 
 namespace difftex {
@@ -412,119 +413,147 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     double* oz = out_z + bi * HW;
     const double* bfz = has_floor ? fz + bi * HW : nullptr;
     const int64_t* bfi = has_floor ? fi + bi * HW : nullptr;
-    at::parallel_for(0, nb, 1, [&](int64_t lo, int64_t hi) {
-      Exact e;
-      Float fl;
-      // K > 1: the band's k-buffer, in cache, written out per layer at the
-      // end of the band; K = 1 works in the output itself.
-      std::vector<double> kz(K > 1 ? kBand * W * K : 0);
-      std::vector<int64_t> ki(K > 1 ? kBand * W * K : 0);
-      for (int64_t band = lo; band < hi; ++band) {
-        const int64_t R0 = band * kBand, R1 = std::min(H, R0 + kBand);
-        // Pixel p's K entries start at zb / ib + (p - p0) * K.
-        double* zb = K > 1 ? kz.data() : oz;
-        int64_t* ib = K > 1 ? ki.data() : oid;
-        const int64_t p0 = K > 1 ? R0 * W : 0;
-        for (int64_t j = (R0 * W - p0) * K; j < (R1 * W - p0) * K; ++j) {
-          zb[j] = INFINITY;
-          ib[j] = count ? 0 : kEmpty;
-        }
-        // One covered fragment (z in range): count it, or the depth test.
-        auto frag = [&](int64_t p, double z, int64_t f) {
-          if (!(z >= -1 && z <= 1)) return;
-          if (count) {
-            ++oid[p];
-            return;
+    // Plain (one layer, no floor, no count: rasterize itself) is compiled
+    // on its own, the per-fragment test without the branches of the other
+    // modes.
+    auto bands = [&](auto plain) {
+      using Plain = decltype(plain);
+      at::parallel_for(0, nb, 1, [&](int64_t lo, int64_t hi) {
+        // Local copies of what the loops read: through the captured
+        // references the compiler must assume that the id and depth stores
+        // may change them, and reloaded them for every pixel.
+        const int64_t Wl = W, Hl = H, Kl = K, Sl = S, HWl = HW, Bl = B, bil = bi;
+        const bool countl = count, floorl = has_floor;
+        const double *const xsl = xs.data(), *const ysl = ys.data(), *const bfzl = bfz;
+        const int64_t *const startl = start.data(), *const bfil = bfi;
+        const int32_t* const listl = list.data();
+        double* const ozl = oz;
+        int64_t *const oidl = oid, *const out_idl = out_id;
+        const Ctx cxl = cx;
+        Exact e;
+        Float fl;
+        // K > 1: the band's k-buffer, in cache, written out per layer at the
+        // end of the band; K = 1 works in the output itself.
+        std::vector<double> kz(Kl > 1 ? kBand * Wl * Kl : 0);
+        std::vector<int64_t> ki(Kl > 1 ? kBand * Wl * Kl : 0);
+        for (int64_t band = lo; band < hi; ++band) {
+          const int64_t R0 = band * kBand, R1 = std::min(Hl, R0 + kBand);
+          // Pixel p's K entries start at zb / ib + (p - p0) * K.
+          double* zb = Kl > 1 ? kz.data() : ozl;
+          int64_t* ib = Kl > 1 ? ki.data() : oidl;
+          const int64_t p0 = Kl > 1 ? R0 * Wl : 0;
+          for (int64_t j = (R0 * Wl - p0) * Kl; j < (R1 * Wl - p0) * Kl; ++j) {
+            zb[j] = INFINITY;
+            ib[j] = countl ? 0 : kEmpty;
           }
-          if (has_floor && !(z > bfz[p] || (z == bfz[p] && f > bfi[p]))) return;
-          // The pixel's K nearest fragments so far in (depth, id) order (a
-          // k-buffer; K = 1: the z-buffer): insert unless behind the K-th.
-          double* zs = zb + (p - p0) * K;
-          int64_t* is = ib + (p - p0) * K;
-          int64_t k = K - 1;
-          if (!(z < zs[k] || (z == zs[k] && f < is[k]))) return;
-          for (; k > 0 && (z < zs[k - 1] || (z == zs[k - 1] && f < is[k - 1])); --k) {
-            zs[k] = zs[k - 1];
-            is[k] = is[k - 1];
-          }
-          zs[k] = z;
-          is[k] = f;
-        };
-        for (int64_t li = start[band]; li < start[band + 1]; ++li) {
-          // Two steps ahead: the face row, then (its row now in cache) the
-          // corners' records and positions.
-          if (li + 2 * kAhead < start[band + 1])
-            RASTER_PREFETCH(cx.faces + 3 * int64_t(list[li + 2 * kAhead] & ~kFloatBit));
-          if (li + kAhead < start[band + 1]) {
-            const int64_t* fa = cx.faces + 3 * int64_t(list[li + kAhead] & ~kFloatBit);
-            for (int i = 0; i < 3; ++i) {
-              RASTER_PREFETCH(cx.vert + fa[i]);
-              RASTER_PREFETCH(cx.row(fa[i]));
+          // One covered fragment (z in range): count it, or the depth test.
+          auto frag = [&](int64_t p, double z, int64_t f) {
+            if (!(z >= -1 && z <= 1)) return;
+            if constexpr (Plain::value) {
+              if (z < ozl[p] || (z == ozl[p] && f < oidl[p])) {
+                ozl[p] = z;
+                oidl[p] = f;
+              }
+              return;
             }
-          }
-          const int64_t f = list[li] & ~kFloatBit;
-          if (!(list[li] & kFloatBit)) {
-            if (!exact_box(cx, f, e) || !exact_edges(cx, e) || !exact_plane(cx, f, e)) continue;
-            const int64_t h = int64_t(1) << (S - 1), step = 2 * h;
-            const int64_t r0 = std::max(e.r0, R0), r1 = std::min(e.r1, R1 - 1);
-            const int64_t qx0 = (2 * e.c0 + 1 - W) * h;
-            for (int64_t r = r0; r <= r1; ++r) {
-              const int64_t qy = (2 * r + 1 - H) * h;
-              int64_t E0 = e.a[0] * qx0 + e.c[0] + e.b[0] * qy;
-              int64_t E1 = e.a[1] * qx0 + e.c[1] + e.b[1] * qy;
-              int64_t E2 = e.a[2] * qx0 + e.c[2] + e.b[2] * qy;
-              const int64_t s0 = e.a[0] * step, s1 = e.a[1] * step, s2 = e.a[2] * step;
-              const double dy = e.zy * (ys[r] - e.y0);
-              if (e.c1 - e.c0 < 8) {
-                for (int64_t c = e.c0; c <= e.c1; ++c, E0 += s0, E1 += s1, E2 += s2) {
-                  if (E0 >= e.thr[0] && E1 >= e.thr[1] && E2 >= e.thr[2])
-                    frag(r * W + c, (e.z0 + e.zx * (xs[c] - e.x0)) + dy, f);
+            if (countl) {
+              ++oidl[p];
+              return;
+            }
+            if (floorl && !(z > bfzl[p] || (z == bfzl[p] && f > bfil[p]))) return;
+            // The pixel's K nearest fragments so far in (depth, id) order (a
+            // k-buffer; K = 1: the z-buffer): insert unless behind the K-th.
+            double* zs = zb + (p - p0) * Kl;
+            int64_t* is = ib + (p - p0) * Kl;
+            int64_t k = Kl - 1;
+            if (!(z < zs[k] || (z == zs[k] && f < is[k]))) return;
+            for (; k > 0 && (z < zs[k - 1] || (z == zs[k - 1] && f < is[k - 1])); --k) {
+              zs[k] = zs[k - 1];
+              is[k] = is[k - 1];
+            }
+            zs[k] = z;
+            is[k] = f;
+          };
+          for (int64_t li = startl[band]; li < startl[band + 1]; ++li) {
+            // Two steps ahead: the face row, then (its row now in cache) the
+            // corners' records and positions.
+            if (li + 2 * kAhead < startl[band + 1])
+              RASTER_PREFETCH(cxl.faces + 3 * int64_t(listl[li + 2 * kAhead] & ~kFloatBit));
+            if (li + kAhead < startl[band + 1]) {
+              const int64_t* fa = cxl.faces + 3 * int64_t(listl[li + kAhead] & ~kFloatBit);
+              for (int i = 0; i < 3; ++i) {
+                RASTER_PREFETCH(cxl.vert + fa[i]);
+                RASTER_PREFETCH(cxl.row(fa[i]));
+              }
+            }
+            const int64_t f = listl[li] & ~kFloatBit;
+            if (!(listl[li] & kFloatBit)) {
+              if (!exact_box(cxl, f, e) || !exact_edges(cxl, e) || !exact_plane(cxl, f, e)) continue;
+              const int64_t h = int64_t(1) << (Sl - 1), step = 2 * h;
+              const int64_t r0 = std::max(e.r0, R0), r1 = std::min(e.r1, R1 - 1);
+              const int64_t c0 = e.c0, c1 = e.c1, t0 = e.thr[0], t1 = e.thr[1], t2 = e.thr[2];
+              const double z0 = e.z0, zx = e.zx, x0 = e.x0;
+              const int64_t qx0 = (2 * e.c0 + 1 - Wl) * h;
+              for (int64_t r = r0; r <= r1; ++r) {
+                const int64_t qy = (2 * r + 1 - Hl) * h;
+                int64_t E0 = e.a[0] * qx0 + e.c[0] + e.b[0] * qy;
+                int64_t E1 = e.a[1] * qx0 + e.c[1] + e.b[1] * qy;
+                int64_t E2 = e.a[2] * qx0 + e.c[2] + e.b[2] * qy;
+                const int64_t s0 = e.a[0] * step, s1 = e.a[1] * step, s2 = e.a[2] * step;
+                const double dy = e.zy * (ysl[r] - e.y0);
+                if (c1 - c0 < 8) {
+                  for (int64_t c = c0; c <= c1; ++c, E0 += s0, E1 += s1, E2 += s2) {
+                    if (E0 >= t0 && E1 >= t1 && E2 >= t2) frag(r * Wl + c, (z0 + zx * (xsl[c] - x0)) + dy, f);
+                  }
+                  continue;
                 }
-                continue;
+                // Wider boxes: the row's span solved exactly per edge (E is
+                // affine in the column, steps s_k), then no test per pixel.
+                int64_t lo = 0, hi = c1 - c0;
+                const int64_t Es[3] = {E0, E1, E2}, ss[3] = {s0, s1, s2};
+                for (int k = 0; k < 3 && lo <= hi; ++k) {
+                  const int64_t d = Es[k] - e.thr[k];  // inside where d + ss[k] * i >= 0
+                  if (ss[k] > 0)
+                    lo = std::max(lo, -floor_div(d, ss[k]));
+                  else if (ss[k] < 0)
+                    hi = std::min(hi, floor_div(d, -ss[k]));
+                  else if (d < 0)
+                    hi = -1;
+                }
+                for (int64_t c = c0 + lo; c <= c0 + hi; ++c) frag(r * Wl + c, (z0 + zx * (xsl[c] - x0)) + dy, f);
               }
-              // Wider boxes: the row's span solved exactly per edge (E is
-              // affine in the column, steps s_k), then no test per pixel.
-              int64_t lo = 0, hi = e.c1 - e.c0;
-              const int64_t Es[3] = {E0, E1, E2}, ss[3] = {s0, s1, s2};
-              for (int k = 0; k < 3 && lo <= hi; ++k) {
-                const int64_t d = Es[k] - e.thr[k];  // inside where d + ss[k] * i >= 0
-                if (ss[k] > 0)
-                  lo = std::max(lo, -floor_div(d, ss[k]));
-                else if (ss[k] < 0)
-                  hi = std::min(hi, floor_div(d, -ss[k]));
-                else if (d < 0)
-                  hi = -1;
-              }
-              for (int64_t c = e.c0 + lo; c <= e.c0 + hi; ++c)
-                frag(r * W + c, (e.z0 + e.zx * (xs[c] - e.x0)) + dy, f);
-            }
-          } else {
-            setup_float(cx, f, fl);
-            const int64_t r0 = std::max(fl.r0, R0), r1 = std::min(fl.r1, R1 - 1);
-            for (int64_t r = r0; r <= r1; ++r) {
-              const double y = ys[r];
-              const double by0 = fl.b[0] * y, by1 = fl.b[1] * y, by2 = fl.b[2] * y, zy = fl.zc[1] * y;
-              for (int64_t c = fl.c0; c <= fl.c1; ++c) {
-                const double x = xs[c];
-                if ((fl.a[0] * x + fl.c[0]) + by0 >= fl.thr[0] && (fl.a[1] * x + fl.c[1]) + by1 >= fl.thr[1] &&
-                    (fl.a[2] * x + fl.c[2]) + by2 >= fl.thr[2])
-                  frag(r * W + c, (fl.zc[0] * x + fl.zc[2]) + zy, f);
+            } else {
+              setup_float(cxl, f, fl);
+              const int64_t r0 = std::max(fl.r0, R0), r1 = std::min(fl.r1, R1 - 1);
+              for (int64_t r = r0; r <= r1; ++r) {
+                const double y = ysl[r];
+                const double by0 = fl.b[0] * y, by1 = fl.b[1] * y, by2 = fl.b[2] * y, zy = fl.zc[1] * y;
+                for (int64_t c = fl.c0; c <= fl.c1; ++c) {
+                  const double x = xsl[c];
+                  if ((fl.a[0] * x + fl.c[0]) + by0 >= fl.thr[0] && (fl.a[1] * x + fl.c[1]) + by1 >= fl.thr[1] &&
+                      (fl.a[2] * x + fl.c[2]) + by2 >= fl.thr[2])
+                    frag(r * Wl + c, (fl.zc[0] * x + fl.zc[2]) + zy, f);
+                }
               }
             }
           }
-        }
-        if (K > 1) {
-          for (int64_t p = R0 * W; p < R1 * W; ++p) {
-            const int64_t* is = ib + (p - p0) * K;
-            for (int64_t k = 0; k < K; ++k) out_id[k * B * HW + bi * HW + p] = is[k] == kEmpty ? -1 : is[k];
-            oz[p] = zb[(p - p0) * K + K - 1];
+          if (Kl > 1) {
+            for (int64_t p = R0 * Wl; p < R1 * Wl; ++p) {
+              const int64_t* is = ib + (p - p0) * Kl;
+              for (int64_t k = 0; k < Kl; ++k) out_idl[k * Bl * HWl + bil * HWl + p] = is[k] == kEmpty ? -1 : is[k];
+              ozl[p] = zb[(p - p0) * Kl + Kl - 1];
+            }
+          } else if (!countl) {
+            for (int64_t p = R0 * Wl; p < R1 * Wl; ++p)
+              if (oidl[p] == kEmpty) oidl[p] = -1;
           }
-        } else if (!count) {
-          for (int64_t p = R0 * W; p < R1 * W; ++p)
-            if (oid[p] == kEmpty) oid[p] = -1;
         }
-      }
-    });
+      });
+    };
+    if (K == 1 && !has_floor && !count)
+      bands(std::true_type{});
+    else
+      bands(std::false_type{});
   }
   return {ids, depth};
 }
@@ -680,13 +709,11 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
   const int64_t N = first[rows];
   auto opt = pos.options();
   auto idx = torch::empty({N}, tri_id.options());
-  // Mostly background (a deep depth-peeling layer): the dense outputs start
-  // as zeros (a parallel fill) and only covered pixels are written; else
-  // every pixel is written once, zeros included.
-  const bool prezero = 2 * N < rows * W;
-  auto dense = [&](at::IntArrayRef shape, const at::TensorOptions& o) {
-    return prezero ? torch::zeros(shape, o) : torch::empty(shape, o);
-  };
+  // Every byte of the dense outputs is written once: covered pixels by the
+  // formula, background runs of a row by one memset per output (zeros
+  // first and covered pixels after cost a second pass over the covered
+  // ones, the bound of a mostly covered image).
+  auto dense = [&](at::IntArrayRef shape, const at::TensorOptions& o) { return torch::empty(shape, o); };
   std::vector<torch::Tensor> out{idx};
   if (packed) {
     out.push_back(dense({B, H, W, 4}, opt));  // rast: (b0, b1, depth, id + 1 + offset), 0 on background
@@ -715,19 +742,24 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
         // _pixel_centres: (i + 0.5) * (2 / n) - 1, negated for rows.
         const T y = -((T(row) + T(0.5)) * hy - T(1));
         int64_t n = first[r];
+        int64_t bg = r * W;  // the current background run is [bg, p)
+        auto zero_run = [&](int64_t end) {
+          if (end == bg) return;
+          const size_t m = size_t(end - bg) * sizeof(T);
+          if (packed) {
+            std::memset(o[0] + 4 * bg, 0, 4 * m);
+            std::memset(o[1] + 4 * bg, 0, 4 * m);
+          } else {
+            for (int k : {3, 5, 6}) std::memset(o[k] + 3 * bg, 0, 3 * m);
+            std::memset(o[4] + bg, 0, m);
+          }
+        };
         for (int64_t col = 0; col < W; ++col) {
           const int64_t p = r * W + col;
           const int64_t f = pid[p];
-          if (f < 0) {
-            if (prezero) continue;
-            if (packed) {
-              for (int k = 0; k < 4; ++k) o[0][4 * p + k] = o[1][4 * p + k] = 0;
-            } else {
-              for (int k = 0; k < 3; ++k) o[3][3 * p + k] = o[5][3 * p + k] = o[6][3 * p + k] = 0;
-              o[4][p] = 0;
-            }
-            continue;
-          }
+          if (f < 0) continue;
+          zero_run(p);
+          bg = p + 1;
           if (bi * F + f != loaded) {
             const int64_t rows3[3] = {bi * V + pf[3 * f], bi * V + pf[3 * f + 1], bi * V + pf[3 * f + 2]};
             tri.load(pp, rows3);
@@ -751,6 +783,7 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
           }
           ++n;
         }
+        zero_run((r + 1) * W);
       }
     });
   });
