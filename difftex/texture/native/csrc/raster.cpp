@@ -24,6 +24,7 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -112,6 +113,25 @@ struct Float {
   double a[3], b[3], c[3], thr[3], zc[3];
   int64_t c0, c1, r0, r1;
 };
+
+// Work items [0, n) handed out one at a time to the threads of one
+// at::parallel_for region (its static split into equal ranges left one
+// thread idle while the other drew the rows where the mesh is): run(next)
+// is called once per thread with a function giving the next item, or -1.
+// Which thread does an item does not change the result: each item owns its
+// output.
+template <typename Run>
+void dynamic_for(int64_t n, Run&& run) {
+  std::atomic<int64_t> counter{0};
+  const int64_t threads = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n));
+  at::parallel_for(0, threads, 1, [&](int64_t lo, int64_t hi) {
+    auto next = [&]() -> int64_t {
+      const int64_t i = counter.fetch_add(1, std::memory_order_relaxed);
+      return i < n ? i : -1;
+    };
+    for (int64_t t = lo; t < hi; ++t) run(next);
+  });
+}
 
 inline int64_t floor_div(int64_t a, int64_t d) { return a >= 0 ? a / d : -((-a + d - 1) / d); }
 
@@ -337,17 +357,22 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     // Vertices: the float path's scale and outcode, the exact path's snap.
     const Ctx cx{P, f32, faces.data_ptr<int64_t>(), vert.data(), H, W, S, cull};
     at::parallel_for(0, V, 4096, [&](int64_t lo, int64_t hi) {
+      // Locals: the outcode is a byte store, which may alias anything.
+      const Ctx vc = cx;
+      const double vsx = sx, vsy = sy;
+      const bool snap = S > 0;
+      Vert* const out = vert.data();
       for (int64_t v = lo; v < hi; ++v) {
         double p[4];
-        cx.corner(v, p);
+        vc.corner(v, p);
         const double s = pow2_scale(max_abs4(p));
         const double X = p[0] * s, Y = p[1] * s, Z = p[2] * s, Wc = p[3] * s;
         uint8_t code = uint8_t((X > Wc) | ((X < -Wc) << 1) | ((Y > Wc) << 2) | ((Y < -Wc) << 3) | ((Z > Wc) << 4) |
                          ((Z < -Wc) << 5));
-        Vert& o = vert[v];
+        Vert& o = out[v];
         o.x = o.y = 0;
-        if (S > 0 && p[3] > 0) {
-          const double fx = (p[0] / p[3]) * sx, fy = (p[1] / p[3]) * sy;
+        if (snap && p[3] > 0) {
+          const double fx = (p[0] / p[3]) * vsx, fy = (p[1] / p[3]) * vsy;
           if (std::abs(fx) <= kGuard && std::abs(fy) <= kGuard) {
             code |= kSnapped;
             o.x = int32_t(round_even(fx));
@@ -365,6 +390,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     std::vector<int64_t> cnt(nch * nb, 0);
     std::vector<std::vector<Live>> live(nch);
     at::parallel_for(0, nch, 1, [&](int64_t lo_ch, int64_t hi_ch) {
+      const Ctx tc = cx;  // a local copy: the list writes could alias the captured one (reloaded per triangle)
       Exact e;
       Float fl;
       for (int64_t ch = lo_ch; ch < hi_ch; ++ch) {
@@ -373,17 +399,17 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
         out.clear();
         for (int64_t f = lo; f < hi; ++f) {
           if (f + kAhead < hi) {
-            const int64_t* fa = cx.faces + 3 * (f + kAhead);
-            for (int i = 0; i < 3; ++i) RASTER_PREFETCH(cx.vert + fa[i]);
+            const int64_t* fa = tc.faces + 3 * (f + kAhead);
+            for (int i = 0; i < 3; ++i) RASTER_PREFETCH(tc.vert + fa[i]);
           }
-          const int64_t* fv = cx.faces + 3 * f;
-          const uint8_t c0 = cx.vert[fv[0]].code, c1 = cx.vert[fv[1]].code, c2 = cx.vert[fv[2]].code;
+          const int64_t* fv = tc.faces + 3 * f;
+          const uint8_t c0 = tc.vert[fv[0]].code, c1 = tc.vert[fv[1]].code, c2 = tc.vert[fv[2]].code;
           if (c0 & c1 & c2 & ~kSnapped) continue;
           if (c0 & c1 & c2 & kSnapped) {
-            if (!exact_box(cx, f, e) || !exact_edges(cx, e) || !exact_covers_any(cx, e)) continue;
+            if (!exact_box(tc, f, e) || !exact_edges(tc, e) || !exact_covers_any(tc, e)) continue;
             out.push_back({int32_t(f), int32_t(e.r0 / kBand), int32_t(e.r1 / kBand)});
           } else {
-            if (!setup_float(cx, f, fl)) continue;
+            if (!setup_float(tc, f, fl)) continue;
             out.push_back({int32_t(f) | kFloatBit, int32_t(fl.r0 / kBand), int32_t(fl.r1 / kBand)});
           }
         }
@@ -418,7 +444,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     // modes.
     auto bands = [&](auto plain) {
       using Plain = decltype(plain);
-      at::parallel_for(0, nb, 1, [&](int64_t lo, int64_t hi) {
+      dynamic_for(nb, [&](auto&& next_band) {
         // Local copies of what the loops read: through the captured
         // references the compiler must assume that the id and depth stores
         // may change them, and reloaded them for every pixel.
@@ -436,7 +462,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
         // end of the band; K = 1 works in the output itself.
         std::vector<double> kz(Kl > 1 ? kBand * Wl * Kl : 0);
         std::vector<int64_t> ki(Kl > 1 ? kBand * Wl * Kl : 0);
-        for (int64_t band = lo; band < hi; ++band) {
+        for (int64_t band; (band = next_band()) >= 0;) {
           const int64_t R0 = band * kBand, R1 = std::min(Hl, R0 + kBand);
           // Pixel p's K entries start at zb / ib + (p - p0) * K.
           double* zb = Kl > 1 ? kz.data() : ozl;
@@ -733,11 +759,13 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
     for (size_t i = 1; i < out.size(); ++i) o.push_back(out[i].data_ptr<T>());
     const T sx = T(2.0 / double(W)), sy = T(-2.0 / double(H));
     const T hx = T(2.0 / double(W)), hy = T(2.0 / double(H));
-    at::parallel_for(0, rows, 16, [&](int64_t lo, int64_t hi) {
+    constexpr int64_t kRows = 8;  // rows an item
+    dynamic_for((rows + kRows - 1) / kRows, [&](auto&& next_block) {
       T b[3], dx[3], dy[3];
       Tri<T> tri;
       int64_t loaded = -1;  // the (batch, face) in tri
-      for (int64_t r = lo; r < hi; ++r) {
+      for (int64_t blk; (blk = next_block()) >= 0;)
+      for (int64_t r = blk * kRows; r < std::min(rows, (blk + 1) * kRows); ++r) {
         const int64_t bi = r / H, row = r - bi * H;
         // _pixel_centres: (i + 0.5) * (2 / n) - 1, negated for rows.
         const T y = -((T(row) + T(0.5)) * hy - T(1));
