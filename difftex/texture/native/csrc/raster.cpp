@@ -39,10 +39,14 @@ constexpr double kGuard = 536870912.0;  // 2^29: geometry/raster.py _GUARD
 constexpr int64_t kEmpty = std::numeric_limits<int64_t>::max();
 constexpr int64_t kBand = 8;  // rows a band
 
-// A triangle that covers something, and the bands of rows it touches; in
-// the bands' lists its id, with kFloatBit set where it takes the float path.
+// A triangle that covers something: its id (with kFloatBit set where it
+// takes the float path), the bands of rows it touches, and for the exact
+// path its corners' ids and snapped positions, so that the bands (which
+// list pointers to these records) read no face row and no corner record:
+// only the corners' positions for the depth plane.
 struct Live {
   int32_t f, band0, band1;
+  int32_t v[3], x[3], y[3];
 };
 constexpr int32_t kFloatBit = int32_t(1) << 30;
 
@@ -96,6 +100,24 @@ constexpr int64_t kAhead = 8;
 #else
 #define RASTER_PREFETCH(addr) ((void)(addr))
 #endif
+
+// The same for float (8 exponent bits, bias 127): raster_fragments' scale
+// of a triangle's corners in the input precision.
+inline float pow2_scale(float m) {
+  uint32_t bits;
+  std::memcpy(&bits, &m, 4);
+  const int be = int(bits >> 23) & 0xff;
+  const int rb = 253 - be;
+  if (be == 0 || be == 0xff || rb <= 0) {
+    int ex = 0;
+    std::frexp(m, &ex);
+    return std::ldexp(1.0f, -ex);
+  }
+  const uint32_t r = uint32_t(rb) << 23;
+  float out;
+  std::memcpy(&out, &r, 4);
+  return out;
+}
 
 inline double max_abs4(const double* p) {
   return std::max({std::abs(p[0]), std::abs(p[1]), std::abs(p[2]), std::abs(p[3])});
@@ -161,13 +183,7 @@ struct Ctx {
 // where the triangle covers nothing. exact_box: the snapped corners and the
 // box of pixel centres they span, all integer, no division: most triangles
 // of a dense mesh hold no centre and stop here.
-inline bool exact_box(const Ctx& cx, int64_t f, Exact& t) {
-  const int64_t* fv = cx.faces + 3 * f;
-  for (int i = 0; i < 3; ++i) {
-    const Vert& v = cx.vert[fv[i]];
-    t.x[i] = v.x;
-    t.y[i] = v.y;
-  }
+inline bool exact_box(const Ctx& cx, Exact& t) {
   // Floor / ceiling division by 2h = 2^S as arithmetic shifts (an int64
   // idiv per side cost more than the rest of the test).
   const int64_t h = int64_t(1) << (cx.S - 1);
@@ -178,6 +194,17 @@ inline bool exact_box(const Ctx& cx, int64_t f, Exact& t) {
   t.r0 = std::max<int64_t>(0, -((-(ymin + (cx.H - 1) * h)) >> cx.S));
   t.r1 = std::min<int64_t>(cx.H - 1, (ymax + (cx.H - 1) * h) >> cx.S);
   return t.c0 <= t.c1 && t.r0 <= t.r1;
+}
+
+// The same, loading the snapped corners of triangle f first.
+inline bool exact_box(const Ctx& cx, int64_t f, Exact& t) {
+  const int64_t* fv = cx.faces + 3 * f;
+  for (int i = 0; i < 3; ++i) {
+    const Vert& v = cx.vert[fv[i]];
+    t.x[i] = v.x;
+    t.y[i] = v.y;
+  }
+  return exact_box(cx, t);
 }
 
 // exact_edges (after exact_box): the edge functions oriented so that the
@@ -223,8 +250,7 @@ inline bool exact_covers_any(const Ctx& cx, const Exact& t) {
 
 // exact_plane (after exact_edges): the float64 NDC depth plane of the
 // unsnapped corners, anchored at corner 0; false where it is not finite.
-inline bool exact_plane(const Ctx& cx, int64_t f, Exact& t) {
-  const int64_t* fv = cx.faces + 3 * f;
+inline bool exact_plane(const Ctx& cx, const int32_t* fv, Exact& t) {
   double nx[3], ny[3], nz[3];
   for (int i = 0; i < 3; ++i) {
     double p[4];
@@ -323,7 +349,8 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
   pos = pos.contiguous();
   faces = faces.contiguous();
   const int64_t B = pos.size(0), V = pos.size(1), F = faces.size(0), HW = H * W;
-  TORCH_CHECK(F < kFloatBit, "raster: at most 2^30 - 1 triangles");
+  TORCH_CHECK(F < kFloatBit && V <= std::numeric_limits<int32_t>::max(),
+              "raster: at most 2^30 - 1 triangles and 2^31 - 1 vertices");
   const bool has_floor = floor_z.numel() > 0;
   TORCH_CHECK(layers >= 1 && (layers == 1 || (!has_floor && !count)),
               "raster: layers >= 1, and 1 with a floor or a count");
@@ -407,10 +434,13 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
           if (c0 & c1 & c2 & ~kSnapped) continue;
           if (c0 & c1 & c2 & kSnapped) {
             if (!exact_box(tc, f, e) || !exact_edges(tc, e) || !exact_covers_any(tc, e)) continue;
-            out.push_back({int32_t(f), int32_t(e.r0 / kBand), int32_t(e.r1 / kBand)});
+            out.push_back({int32_t(f), int32_t(e.r0 / kBand), int32_t(e.r1 / kBand),
+                           {int32_t(fv[0]), int32_t(fv[1]), int32_t(fv[2])},
+                           {int32_t(e.x[0]), int32_t(e.x[1]), int32_t(e.x[2])},
+                           {int32_t(e.y[0]), int32_t(e.y[1]), int32_t(e.y[2])}});
           } else {
             if (!setup_float(tc, f, fl)) continue;
-            out.push_back({int32_t(f) | kFloatBit, int32_t(fl.r0 / kBand), int32_t(fl.r1 / kBand)});
+            out.push_back({int32_t(f) | kFloatBit, int32_t(fl.r0 / kBand), int32_t(fl.r1 / kBand), {}, {}, {}});
           }
         }
         for (const Live& t : out)
@@ -428,11 +458,11 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
       }
     }
     start[nb] = total;
-    std::vector<int32_t> list(total);
+    std::vector<const Live*> list(total);
     at::parallel_for(0, nch, 1, [&](int64_t lo, int64_t hi) {
       for (int64_t ch = lo; ch < hi; ++ch)
         for (const Live& t : live[ch])
-          for (int32_t b = t.band0; b <= t.band1; ++b) list[cnt[ch * nb + b]++] = t.f;
+          for (int32_t b = t.band0; b <= t.band1; ++b) list[cnt[ch * nb + b]++] = &t;
     });
     // Bands: each thread owns its rows of the output.
     int64_t* oid = out_id + bi * HW;
@@ -452,7 +482,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
         const bool countl = count, floorl = has_floor;
         const double *const xsl = xs.data(), *const ysl = ys.data(), *const bfzl = bfz;
         const int64_t *const startl = start.data(), *const bfil = bfi;
-        const int32_t* const listl = list.data();
+        const Live* const* const listl = list.data();
         double* const ozl = oz;
         int64_t *const oidl = oid, *const out_idl = out_id;
         const Ctx cxl = cx;
@@ -501,20 +531,21 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
             is[k] = f;
           };
           for (int64_t li = startl[band]; li < startl[band + 1]; ++li) {
-            // Two steps ahead: the face row, then (its row now in cache) the
-            // corners' records and positions.
-            if (li + 2 * kAhead < startl[band + 1])
-              RASTER_PREFETCH(cxl.faces + 3 * int64_t(listl[li + 2 * kAhead] & ~kFloatBit));
+            // The corners' positions kAhead triangles ahead (the records
+            // themselves are read in order).
             if (li + kAhead < startl[band + 1]) {
-              const int64_t* fa = cxl.faces + 3 * int64_t(listl[li + kAhead] & ~kFloatBit);
-              for (int i = 0; i < 3; ++i) {
-                RASTER_PREFETCH(cxl.vert + fa[i]);
-                RASTER_PREFETCH(cxl.row(fa[i]));
-              }
+              const Live& a = *listl[li + kAhead];
+              if (!(a.f & kFloatBit))
+                for (int i = 0; i < 3; ++i) RASTER_PREFETCH(cxl.row(a.v[i]));
             }
-            const int64_t f = listl[li] & ~kFloatBit;
-            if (!(listl[li] & kFloatBit)) {
-              if (!exact_box(cxl, f, e) || !exact_edges(cxl, e) || !exact_plane(cxl, f, e)) continue;
+            const Live& lv = *listl[li];
+            const int64_t f = lv.f & ~kFloatBit;
+            if (!(lv.f & kFloatBit)) {
+              for (int i = 0; i < 3; ++i) {
+                e.x[i] = lv.x[i];
+                e.y[i] = lv.y[i];
+              }
+              if (!exact_box(cxl, e) || !exact_edges(cxl, e) || !exact_plane(cxl, lv.v, e)) continue;
               const int64_t h = int64_t(1) << (Sl - 1), step = 2 * h;
               const int64_t r0 = std::max(e.r0, R0), r1 = std::min(e.r1, R1 - 1);
               const int64_t c0 = e.c0, c1 = e.c1, t0 = e.thr[0], t1 = e.thr[1], t2 = e.thr[2];
@@ -602,9 +633,7 @@ struct Tri {
       X[i] = v[0], Y[i] = v[1], Z[i] = v[2], Wc[i] = v[3];
       m = std::max({m, std::abs(v[0]), std::abs(v[1]), std::abs(v[2]), std::abs(v[3])});
     }
-    int ex = 0;
-    std::frexp(m, &ex);
-    sc = std::ldexp(T(1), -ex);
+    sc = pow2_scale(m);
     for (int i = 0; i < 3; ++i) X[i] *= sc, Y[i] *= sc, Z[i] *= sc, Wc[i] *= sc;
     for (int i = 0; i < 3; ++i) {
       const int j = (i + 1) % 3, k = (i + 2) % 3;
@@ -784,6 +813,13 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
         };
         for (int64_t col = 0; col < W; ++col) {
           const int64_t p = r * W + col;
+          // Small triangles change every pixel: their face rows 2 kAhead
+          // pixels ahead, then (those rows in cache) their corners.
+          if (col + 2 * kAhead < W && pid[p + 2 * kAhead] >= 0) RASTER_PREFETCH(pf + 3 * pid[p + 2 * kAhead]);
+          if (col + kAhead < W && pid[p + kAhead] >= 0 && pid[p + kAhead] != pid[p + kAhead - 1]) {
+            const int64_t* fa = pf + 3 * pid[p + kAhead];
+            for (int i = 0; i < 3; ++i) RASTER_PREFETCH(pp + 4 * (bi * V + fa[i]));
+          }
           const int64_t f = pid[p];
           if (f < 0) continue;
           zero_run(p);
