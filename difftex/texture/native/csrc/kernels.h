@@ -68,6 +68,8 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
 // background). With layers K > 1 (no floor, no count) the K nearest
 // fragments per pixel in (depth, id) order: ids [K * B * H * W] layer-major,
 // and the K-th layer's depth [B * H * W].
+// Empty tensors where pos holds a non-finite value or faces an index
+// outside [0, V) (the caller's checks then name it).
 std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor faces, int64_t H, int64_t W,
                                                 bool cull, int64_t bits, torch::Tensor floor_z,
                                                 torch::Tensor floor_id, bool count, int64_t layers);

@@ -377,6 +377,11 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
   for (int64_t r = 0; r < H; ++r) ys[r] = -((double(r) + 0.5) * (2.0 / double(H)) - 1.0);
   const int64_t nb = (H + kBand - 1) / kBand;
   std::vector<Vert> vert(V);
+  // Non-finite positions or out-of-range indices, found in passes that read
+  // every one of them anyway (rasterize leaves its own checks of a big mesh
+  // to these): the kernel then returns empty tensors, and the caller names
+  // the problem.
+  std::atomic<bool> bad{false};
 
   for (int64_t bi = 0; bi < B; ++bi) {
     const bool f32 = pos.scalar_type() == torch::kFloat32;
@@ -392,6 +397,8 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
       for (int64_t v = lo; v < hi; ++v) {
         double p[4];
         vc.corner(v, p);
+        if (!(std::isfinite(p[0]) && std::isfinite(p[1]) && std::isfinite(p[2]) && std::isfinite(p[3])))
+          bad.store(true, std::memory_order_relaxed);
         const double s = pow2_scale(max_abs4(p));
         const double X = p[0] * s, Y = p[1] * s, Z = p[2] * s, Wc = p[3] * s;
         uint8_t code = uint8_t((X > Wc) | ((X < -Wc) << 1) | ((Y > Wc) << 2) | ((Y < -Wc) << 3) | ((Z > Wc) << 4) |
@@ -418,6 +425,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     std::vector<std::vector<Live>> live(nch);
     at::parallel_for(0, nch, 1, [&](int64_t lo_ch, int64_t hi_ch) {
       const Ctx tc = cx;  // a local copy: the list writes could alias the captured one (reloaded per triangle)
+      const uint64_t nv = uint64_t(V);
       Exact e;
       Float fl;
       for (int64_t ch = lo_ch; ch < hi_ch; ++ch) {
@@ -427,9 +435,14 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
         for (int64_t f = lo; f < hi; ++f) {
           if (f + kAhead < hi) {
             const int64_t* fa = tc.faces + 3 * (f + kAhead);
-            for (int i = 0; i < 3; ++i) RASTER_PREFETCH(tc.vert + fa[i]);
+            for (int i = 0; i < 3; ++i)
+              if (uint64_t(fa[i]) < nv) RASTER_PREFETCH(tc.vert + fa[i]);
           }
           const int64_t* fv = tc.faces + 3 * f;
+          if ((uint64_t(fv[0]) >= nv) | (uint64_t(fv[1]) >= nv) | (uint64_t(fv[2]) >= nv)) {
+            bad.store(true, std::memory_order_relaxed);
+            continue;
+          }
           const uint8_t c0 = tc.vert[fv[0]].code, c1 = tc.vert[fv[1]].code, c2 = tc.vert[fv[2]].code;
           if (c0 & c1 & c2 & ~kSnapped) continue;
           if (c0 & c1 & c2 & kSnapped) {
@@ -447,6 +460,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
           for (int32_t b = t.band0; b <= t.band1; ++b) ++cnt[ch * nb + b];
       }
     });
+    if (bad.load()) return {torch::empty({0}, torch::kInt64), torch::empty({0}, torch::kFloat64)};
     std::vector<int64_t> start(nb + 1, 0);
     int64_t total = 0;
     for (int64_t b = 0; b < nb; ++b) {
