@@ -16,9 +16,13 @@
 //     the pixel centre, kept where -1 <= z <= 1; nearest wins, a tie goes to
 //     the lowest face id; with a floor (depth peeling) only fragments behind
 //     the floor's (depth, id) in that order count.
-// Threads: triangles are set up and binned into bands of rows in parallel,
-// then each band is rasterized by one thread into its own rows (no races,
-// the result does not depend on the thread count).
+// Passes: the vertices (outcode, snap; finiteness), the triangles in chunks
+// (index range, culling, the box of pixel centres and, for boxes of a few
+// centres, whether one is covered: a dense mesh's many triangles that
+// cover no centre stop here), the survivors binned into bands of 8 rows in
+// increasing id, then the bands, handed out one at a time to the threads,
+// each rasterized by one thread into its own rows (no races, the result
+// does not depend on the thread count or the order).
 #include "kernels.h"
 
 #include <ATen/Parallel.h>
