@@ -831,6 +831,8 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
         };
         for (int64_t col = 0; col < W; ++col) {
           const int64_t p = r * W + col;
+          const int64_t f = pid[p];
+          if (f < 0) continue;  // background costs one test (most of a deep peeling layer)
           // Small triangles change every pixel: their face rows 2 kAhead
           // pixels ahead, then (those rows in cache) their corners.
           if (col + 2 * kAhead < W && pid[p + 2 * kAhead] >= 0) RASTER_PREFETCH(pf + 3 * pid[p + 2 * kAhead]);
@@ -838,8 +840,6 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
             const int64_t* fa = pf + 3 * pid[p + kAhead];
             for (int i = 0; i < 3; ++i) RASTER_PREFETCH(pp + 4 * (bi * V + fa[i]));
           }
-          const int64_t f = pid[p];
-          if (f < 0) continue;
           zero_run(p);
           bg = p + 1;
           if (bi * F + f != loaded) {
