@@ -53,12 +53,16 @@ def broadcast_batch(names: Sequence[str], sizes: Sequence[int]) -> int:
     return big.pop() if big else 1
 
 
-def check_index(name: str, idx: object, num_rows: int, rows_doc: str, device: torch.device) -> Tensor:
+def check_index(name: str, idx: object, num_rows: int, rows_doc: str, device: torch.device, *,
+                check_range: bool = True) -> Tensor:
     """An [F, 3] integer index array into ``num_rows`` rows, as int64 on ``device``.
 
     Raises TypeError unless ``idx`` is an integer tensor, ValueError naming
     ``name`` on another shape or indices outside ``[0, num_rows)``;
     ``rows_doc`` says what the rows are (e.g. "number of vertices").
+    ``check_range=False`` leaves the range (a pass over all indices) to a
+    caller whose kernel tests every index anyway and calls this again with
+    the check where one is out of range.
     """
     if not isinstance(idx, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(idx).__name__}")
@@ -67,8 +71,8 @@ def check_index(name: str, idx: object, num_rows: int, rows_doc: str, device: to
     if idx.dim() != 2 or idx.shape[1] != 3:
         raise ValueError(f"{name} must have shape [F, 3], got {tuple(idx.shape)}")
     idx = idx.to(device=device, dtype=torch.int64)
-    if idx.numel() > 0:
-        lo, hi = int(idx.min()), int(idx.max())
+    if check_range and idx.numel() > 0:
+        lo, hi = (int(v) for v in torch.aminmax(idx))  # one pass, not two
         if lo < 0 or hi >= num_rows:
             raise ValueError(f"{name} indices must lie in [0, {num_rows - 1}] ({rows_doc}), got values in [{lo}, {hi}]")
     return idx

@@ -553,3 +553,29 @@ def test_default_memory_limit_refuses_what_cannot_fit(resolution, B, gib):
     with pytest.raises(ValueError, match=rf"resolution {H}x{W} with batch {B} needs at least {gib:.1f} GiB .*"
                                          r"MAX_BYTES = 16\.0 GiB"):
         rasterize(*_one_triangle(B), resolution)
+
+
+@pytest.mark.parametrize("name", ["native", "reference"])
+def test_bad_values_named_on_both_paths(name):
+    # On the native path rasterize leaves the finiteness and index-range
+    # passes to the kernel (which reads every vertex and triangle anyway)
+    # and names the problem when it reports one: the same errors as the
+    # torch path, also for a bad value in the second batch item and for a
+    # bad index far past the kernel's first chunk of triangles.
+    V, F = icosphere(4)
+    pos = camera.transform(V, camera.perspective(45.0, 1.0, 0.1, 10.0, degrees=True)
+                           @ camera.look_at(torch.tensor([0.0, 0.0, 3.0]), torch.zeros(3)))
+    faces = torch.cat([F] * 4)  # 20,480 triangles: several chunks
+    with use_backend(name):
+        assert (rasterize(pos, faces, (16, 16)).tri_id >= 0).any()
+        bad_faces = faces.clone()
+        bad_faces[-1, 2] = len(pos)
+        with pytest.raises(ValueError, match=f"faces indices must lie in \\[0, {len(pos) - 1}\\]"):
+            rasterize(pos, bad_faces, (16, 16))
+        bad_faces[-1, 2] = -3
+        with pytest.raises(ValueError, match="faces indices must lie in .* got values in \\[-3, "):
+            difftex.depth_peel(pos, bad_faces, (16, 16), 2)
+        batch = torch.stack([pos, pos])
+        batch[1, -1, 3] = float("nan")
+        with pytest.raises(ValueError, match="pos contains non-finite"):
+            rasterize(batch, faces, (16, 16))

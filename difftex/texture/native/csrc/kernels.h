@@ -62,13 +62,15 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
              const ReadOptions& opts, const EwaNeeds& need);
 
 // raster.cpp: rasterize's visibility pass (geometry/raster.py _visibility).
-// pos [B, V, 4] float64, faces [F, 3] int64; bits: sub-pixel bits of the
+// pos [B, V, 4] float32 / float64 (computed in float64), faces [F, 3] int64; bits: sub-pixel bits of the
 // exact path (0: float path only); floor_z / floor_id [B * H * W] or empty
 // (depth peeling). -> (ids [B * H * W] int64, -1 background, or with count
 // the number of covering fragments; depth [B * H * W] float64, +inf
 // background). With layers K > 1 (no floor, no count) the K nearest
 // fragments per pixel in (depth, id) order: ids [K * B * H * W] layer-major,
 // and the K-th layer's depth [B * H * W].
+// Empty tensors where pos holds a non-finite value or faces an index
+// outside [0, V) (the caller's checks then name it).
 std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor faces, int64_t H, int64_t W,
                                                 bool cull, int64_t bits, torch::Tensor floor_z,
                                                 torch::Tensor floor_id, bool count, int64_t layers);

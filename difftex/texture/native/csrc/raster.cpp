@@ -16,17 +16,24 @@
 //     the pixel centre, kept where -1 <= z <= 1; nearest wins, a tie goes to
 //     the lowest face id; with a floor (depth peeling) only fragments behind
 //     the floor's (depth, id) in that order count.
-// Threads: triangles are set up and binned into bands of rows in parallel,
-// then each band is rasterized by one thread into its own rows (no races,
-// the result does not depend on the thread count).
+// Passes: the vertices (outcode, snap; finiteness), the triangles in chunks
+// (index range, culling, the box of pixel centres and, for boxes of a few
+// centres, whether one is covered: a dense mesh's many triangles that
+// cover no centre stop here), the survivors binned into bands of 8 rows in
+// increasing id, then the bands, handed out one at a time to the threads,
+// each rasterized by one thread into its own rows (no races, the result
+// does not depend on the thread count or the order).
 #include "kernels.h"
 
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <limits>
+#include <type_traits>
 #include <vector>
 
 namespace difftex {
@@ -36,84 +43,185 @@ constexpr double kGuard = 536870912.0;  // 2^29: geometry/raster.py _GUARD
 constexpr int64_t kEmpty = std::numeric_limits<int64_t>::max();
 constexpr int64_t kBand = 8;  // rows a band
 
-enum Kind : uint8_t { DEAD = 0, EXACT = 1, FLOAT = 2 };
+// A triangle that covers something: its id (with kFloatBit set where it
+// takes the float path), the bands of rows it touches, and for the exact
+// path its corners' ids and snapped positions, so that the bands (which
+// list pointers to these records) read no face row and no corner record:
+// only the corners' positions for the depth plane.
+struct Live {
+  int32_t f, band0, band1;
+  int32_t v[3], x[3], y[3];
+};
+constexpr int32_t kFloatBit = int32_t(1) << 30;
 
-// Per vertex, split by use so that the per-triangle pass over a big mesh
-// touches few bytes a corner: the outcode (bit 7: snapped) and the snapped
-// position (|q| <= 2^29 fits int32) for every triangle, the NDC and the
-// float path's scale only for the triangles that survive.
+// Per vertex, what the per-triangle pass over a big mesh reads, in one
+// 12-byte record (one cache line a corner: the corners of a dense mesh are
+// scattered, so the pass is bound by these misses): the snapped position
+// (|q| <= 2^29 fits int32) and the outcode (bit 7: snapped). The NDC of the
+// depth plane and the float path's scale are recomputed from pos for the
+// few triangles that survive the coverage test (writing them per vertex
+// cost more than that).
 constexpr uint8_t kSnapped = 0x80;
 
-struct VertCold {
-  double nx, ny, nz;  // NDC (the exact path's depth plane), where snapped
-  double s;           // power-of-two scale of the float path
+struct Vert {
+  int32_t x, y;
+  uint8_t code;
 };
 
 struct Exact {
+  int64_t x[3], y[3];
   int64_t a[3], b[3], c[3], thr[3];
   double z0, x0, y0, zx, zy;
   int64_t c0, c1, r0, r1;
 };
+
+// 2^-e where frexp(m) = f 2^e (f in [0.5, 1)): the float path's scale of a
+// vertex whose largest |coordinate| is m >= 0, from the exponent bits (the
+// libm frexp / ldexp calls cost more than the rest of the vertex pass);
+// zero, subnormal, non-finite or huge m take the libm route.
+inline double pow2_scale(double m) {
+  uint64_t bits;
+  std::memcpy(&bits, &m, 8);
+  const int be = int(bits >> 52) & 0x7ff;
+  const int rb = 2045 - be;  // biased exponent of 2^-(be - 1022)
+  if (be == 0 || be == 0x7ff || rb <= 0) {
+    int ex = 0;
+    std::frexp(m, &ex);
+    return std::ldexp(1.0, -ex);
+  }
+  const uint64_t r = uint64_t(rb) << 52;
+  double out;
+  std::memcpy(&out, &r, 8);
+  return out;
+}
+
+// The corners of a dense mesh are scattered in memory: both triangle
+// loops ask for the corner records of the triangle kAhead places on, so
+// that their cache misses overlap instead of stalling one by one.
+constexpr int64_t kAhead = 8;
+#if defined(__GNUC__) || defined(__clang__)
+#define RASTER_PREFETCH(addr) __builtin_prefetch((addr), 0, 3)
+#else
+#define RASTER_PREFETCH(addr) ((void)(addr))
+#endif
+
+// The same for float (8 exponent bits, bias 127): raster_fragments' scale
+// of a triangle's corners in the input precision.
+inline float pow2_scale(float m) {
+  uint32_t bits;
+  std::memcpy(&bits, &m, 4);
+  const int be = int(bits >> 23) & 0xff;
+  const int rb = 253 - be;
+  if (be == 0 || be == 0xff || rb <= 0) {
+    int ex = 0;
+    std::frexp(m, &ex);
+    return std::ldexp(1.0f, -ex);
+  }
+  const uint32_t r = uint32_t(rb) << 23;
+  float out;
+  std::memcpy(&out, &r, 4);
+  return out;
+}
+
+inline double max_abs4(const double* p) {
+  return std::max({std::abs(p[0]), std::abs(p[1]), std::abs(p[2]), std::abs(p[3])});
+}
+
+// nearbyint in the default rounding mode (to nearest, ties to even) for
+// |v| <= 2^51: adding 1.5 * 2^52 leaves no fraction bits (an inline add
+// where the baseline x86-64 target calls libm's nearbyint).
+inline double round_even(double v) {
+  constexpr double kMagic = 6755399441055744.0;
+  return (v + kMagic) - kMagic;
+}
 
 struct Float {
   double a[3], b[3], c[3], thr[3], zc[3];
   int64_t c0, c1, r0, r1;
 };
 
+// Work items [0, n) handed out one at a time to the threads of one
+// at::parallel_for region (its static split into equal ranges left one
+// thread idle while the other drew the rows where the mesh is): run(next)
+// is called once per thread with a function giving the next item, or -1.
+// Which thread does an item does not change the result: each item owns its
+// output.
+template <typename Run>
+void dynamic_for(int64_t n, Run&& run) {
+  std::atomic<int64_t> counter{0};
+  const int64_t threads = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n));
+  at::parallel_for(0, threads, 1, [&](int64_t lo, int64_t hi) {
+    auto next = [&]() -> int64_t {
+      const int64_t i = counter.fetch_add(1, std::memory_order_relaxed);
+      return i < n ? i : -1;
+    };
+    for (int64_t t = lo; t < hi; ++t) run(next);
+  });
+}
+
 inline int64_t floor_div(int64_t a, int64_t d) { return a >= 0 ? a / d : -((-a + d - 1) / d); }
 
 struct Ctx {
-  const double* pos;  // [V, 4] of this batch item
+  const void* pos;  // [V, 4] of this batch item, float64 or (f32) float32
+  bool f32;
   const int64_t* faces;
-  const uint8_t* code;
-  const int32_t* q;  // [V, 2]
-  const VertCold* cold;
+  const Vert* vert;
   int64_t H, W, S;
   bool cull;
+
+  // Vertex v's clip coordinates, exactly, as float64 (float32 input is
+  // read as it is: no converted copy of a big mesh's positions).
+  void corner(int64_t v, double* p) const {
+    if (f32) {
+      const float* q = static_cast<const float*>(pos) + 4 * v;
+      for (int i = 0; i < 4; ++i) p[i] = q[i];
+    } else {
+      const double* q = static_cast<const double*>(pos) + 4 * v;
+      for (int i = 0; i < 4; ++i) p[i] = q[i];
+    }
+  }
+  const char* row(int64_t v) const { return static_cast<const char*>(pos) + (f32 ? 16 : 32) * v; }
 };
 
-// Exact-path setup (raster.py _prepare_exact); false where the triangle
-// covers nothing. With box_only, only what the binning needs (edges, the
-// culling and the pixel-centre box, all integer): the depth plane and its
-// finiteness test wait for the rasterizing pass.
-bool setup_exact(const Ctx& cx, int64_t f, Exact& t, bool box_only = false) {
-  const int64_t* fv = cx.faces + 3 * f;
-  int64_t x[3], y[3];
-  for (int i = 0; i < 3; ++i) {
-    x[i] = cx.q[2 * fv[i]];
-    y[i] = cx.q[2 * fv[i] + 1];
-  }
-  for (int i = 0; i < 3; ++i) {
-    const int j = (i + 1) % 3, k = (i + 2) % 3;
-    t.a[i] = y[k] - y[j];
-    t.b[i] = x[j] - x[k];
-    t.c[i] = -(t.a[i] * x[j] + t.b[i] * y[j]);
-  }
-  const int64_t area = t.a[0] * x[0] + t.b[0] * y[0] + t.c[0];
-  if (cx.cull ? area <= 0 : area == 0) return false;
-  // The pixel-centre box first: most triangles of a dense mesh hold no
-  // centre, and this needs no division.
+// Exact-path setup (raster.py _prepare_exact) in three steps, each false
+// where the triangle covers nothing. exact_box: the snapped corners and the
+// box of pixel centres they span, all integer, no division: most triangles
+// of a dense mesh hold no centre and stop here.
+inline bool exact_box(const Ctx& cx, Exact& t) {
   // Floor / ceiling division by 2h = 2^S as arithmetic shifts (an int64
   // idiv per side cost more than the rest of the test).
   const int64_t h = int64_t(1) << (cx.S - 1);
-  const int64_t xmin = std::min({x[0], x[1], x[2]}), xmax = std::max({x[0], x[1], x[2]});
-  const int64_t ymin = std::min({y[0], y[1], y[2]}), ymax = std::max({y[0], y[1], y[2]});
+  const int64_t xmin = std::min({t.x[0], t.x[1], t.x[2]}), xmax = std::max({t.x[0], t.x[1], t.x[2]});
+  const int64_t ymin = std::min({t.y[0], t.y[1], t.y[2]}), ymax = std::max({t.y[0], t.y[1], t.y[2]});
   t.c0 = std::max<int64_t>(0, -((-(xmin + (cx.W - 1) * h)) >> cx.S));
   t.c1 = std::min<int64_t>(cx.W - 1, (xmax + (cx.W - 1) * h) >> cx.S);
   t.r0 = std::max<int64_t>(0, -((-(ymin + (cx.H - 1) * h)) >> cx.S));
   t.r1 = std::min<int64_t>(cx.H - 1, (ymax + (cx.H - 1) * h) >> cx.S);
-  if (!(t.c0 <= t.c1 && t.r0 <= t.r1)) return false;
-  if (box_only) return true;
-  const VertCold &v0 = cx.cold[fv[0]], &v1 = cx.cold[fv[1]], &v2 = cx.cold[fv[2]];
-  const double dx1 = v1.nx - v0.nx, dy1 = v1.ny - v0.ny, dz1 = v1.nz - v0.nz;
-  const double dx2 = v2.nx - v0.nx, dy2 = v2.ny - v0.ny, dz2 = v2.nz - v0.nz;
-  const double d = dx1 * dy2 - dx2 * dy1;
-  t.zx = (dz1 * dy2 - dz2 * dy1) / d;
-  t.zy = (dx1 * dz2 - dx2 * dz1) / d;
-  if (!std::isfinite(t.zx) || !std::isfinite(t.zy)) return false;
-  t.z0 = v0.nz;
-  t.x0 = v0.nx;
-  t.y0 = v0.ny;
+  return t.c0 <= t.c1 && t.r0 <= t.r1;
+}
+
+// The same, loading the snapped corners of triangle f first.
+inline bool exact_box(const Ctx& cx, int64_t f, Exact& t) {
+  const int64_t* fv = cx.faces + 3 * f;
+  for (int i = 0; i < 3; ++i) {
+    const Vert& v = cx.vert[fv[i]];
+    t.x[i] = v.x;
+    t.y[i] = v.y;
+  }
+  return exact_box(cx, t);
+}
+
+// exact_edges (after exact_box): the edge functions oriented so that the
+// inside is >= thr (the top-left rule), culling and degeneracy.
+inline bool exact_edges(const Ctx& cx, Exact& t) {
+  for (int i = 0; i < 3; ++i) {
+    const int j = (i + 1) % 3, k = (i + 2) % 3;
+    t.a[i] = t.y[k] - t.y[j];
+    t.b[i] = t.x[j] - t.x[k];
+    t.c[i] = -(t.a[i] * t.x[j] + t.b[i] * t.y[j]);
+  }
+  const int64_t area = t.a[0] * t.x[0] + t.b[0] * t.y[0] + t.c[0];
+  if (cx.cull ? area <= 0 : area == 0) return false;
   const int64_t sgn = area > 0 ? 1 : -1;
   for (int i = 0; i < 3; ++i) {
     t.a[i] *= sgn;
@@ -124,6 +232,49 @@ bool setup_exact(const Ctx& cx, int64_t f, Exact& t, bool box_only = false) {
   return true;
 }
 
+// Whether a small box (at most kProbe centres) holds a centre the triangle
+// covers: the binning pass drops the many sliver and sub-pixel triangles
+// of a dense mesh whose box holds centres they miss, so that the bands see
+// only triangles that cover something.
+constexpr int64_t kProbe = 4;
+inline bool exact_covers_any(const Ctx& cx, const Exact& t) {
+  if ((t.c1 - t.c0 + 1) * (t.r1 - t.r0 + 1) > kProbe) return true;
+  const int64_t h = int64_t(1) << (cx.S - 1);
+  for (int64_t r = t.r0; r <= t.r1; ++r) {
+    const int64_t qy = (2 * r + 1 - cx.H) * h;
+    for (int64_t c = t.c0; c <= t.c1; ++c) {
+      const int64_t qx = (2 * c + 1 - cx.W) * h;
+      if (t.a[0] * qx + t.c[0] + t.b[0] * qy >= t.thr[0] && t.a[1] * qx + t.c[1] + t.b[1] * qy >= t.thr[1] &&
+          t.a[2] * qx + t.c[2] + t.b[2] * qy >= t.thr[2])
+        return true;
+    }
+  }
+  return false;
+}
+
+// exact_plane (after exact_edges): the float64 NDC depth plane of the
+// unsnapped corners, anchored at corner 0; false where it is not finite.
+inline bool exact_plane(const Ctx& cx, const int32_t* fv, Exact& t) {
+  double nx[3], ny[3], nz[3];
+  for (int i = 0; i < 3; ++i) {
+    double p[4];
+    cx.corner(fv[i], p);
+    nx[i] = p[0] / p[3];
+    ny[i] = p[1] / p[3];
+    nz[i] = p[2] / p[3];
+  }
+  const double dx1 = nx[1] - nx[0], dy1 = ny[1] - ny[0], dz1 = nz[1] - nz[0];
+  const double dx2 = nx[2] - nx[0], dy2 = ny[2] - ny[0], dz2 = nz[2] - nz[0];
+  const double d = dx1 * dy2 - dx2 * dy1;
+  t.zx = (dz1 * dy2 - dz2 * dy1) / d;
+  t.zy = (dx1 * dz2 - dx2 * dz1) / d;
+  if (!std::isfinite(t.zx) || !std::isfinite(t.zy)) return false;
+  t.z0 = nz[0];
+  t.x0 = nx[0];
+  t.y0 = ny[0];
+  return true;
+}
+
 // Float-path setup (raster.py _prepare_float); the bounding box is the
 // projected one where every corner is in front of the near plane, else the
 // whole screen (the torch path clips it tighter: both are conservative).
@@ -131,8 +282,9 @@ bool setup_float(const Ctx& cx, int64_t f, Float& t) {
   const int64_t* fv = cx.faces + 3 * f;
   double X[3], Y[3], Z[3], Wc[3];
   for (int i = 0; i < 3; ++i) {
-    const double* p = cx.pos + 4 * fv[i];
-    const double s = cx.cold[fv[i]].s;
+    double p[4];
+    cx.corner(fv[i], p);
+    const double s = pow2_scale(max_abs4(p));
     X[i] = p[0] * s;
     Y[i] = p[1] * s;
     Z[i] = p[2] * s;
@@ -191,8 +343,9 @@ bool setup_float(const Ctx& cx, int64_t f, Float& t) {
 std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor faces, int64_t H, int64_t W,
                                                 bool cull, int64_t bits, torch::Tensor floor_z,
                                                 torch::Tensor floor_id, bool count, int64_t layers) {
-  TORCH_CHECK(pos.device().is_cpu() && pos.scalar_type() == torch::kFloat64 && pos.dim() == 3 && pos.size(2) == 4,
-              "raster: pos must be a CPU float64 tensor [B, V, 4]");
+  TORCH_CHECK(pos.device().is_cpu() && (pos.scalar_type() == torch::kFloat64 || pos.scalar_type() == torch::kFloat32) &&
+                  pos.dim() == 3 && pos.size(2) == 4,
+              "raster: pos must be a CPU float32 or float64 tensor [B, V, 4]");
   TORCH_CHECK(faces.device().is_cpu() && faces.scalar_type() == torch::kInt64 && faces.dim() == 2 &&
                   faces.size(1) == 3,
               "raster: faces must be a CPU int64 tensor [F, 3]");
@@ -200,6 +353,8 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
   pos = pos.contiguous();
   faces = faces.contiguous();
   const int64_t B = pos.size(0), V = pos.size(1), F = faces.size(0), HW = H * W;
+  TORCH_CHECK(F < kFloatBit && V <= std::numeric_limits<int32_t>::max(),
+              "raster: at most 2^30 - 1 triangles and 2^31 - 1 vertices");
   const bool has_floor = floor_z.numel() > 0;
   TORCH_CHECK(layers >= 1 && (layers == 1 || (!has_floor && !count)),
               "raster: layers >= 1, and 1 with a floor or a count");
@@ -225,74 +380,91 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
   for (int64_t c = 0; c < W; ++c) xs[c] = (double(c) + 0.5) * (2.0 / double(W)) - 1.0;
   for (int64_t r = 0; r < H; ++r) ys[r] = -((double(r) + 0.5) * (2.0 / double(H)) - 1.0);
   const int64_t nb = (H + kBand - 1) / kBand;
-  std::vector<uint8_t> vcode(V);
-  std::vector<int32_t> vq(2 * V);
-  std::vector<VertCold> vcold(V);
-  std::vector<uint8_t> kind(F);
-  std::vector<int32_t> band0(F), band1(F);
+  std::vector<Vert> vert(V);
+  // Non-finite positions or out-of-range indices, found in passes that read
+  // every one of them anyway (rasterize leaves its own checks of a big mesh
+  // to these): the kernel then returns empty tensors, and the caller names
+  // the problem.
+  std::atomic<bool> bad{false};
 
   for (int64_t bi = 0; bi < B; ++bi) {
-    const double* P = pos.data_ptr<double>() + bi * V * 4;
+    const bool f32 = pos.scalar_type() == torch::kFloat32;
+    const char* P = static_cast<const char*>(pos.data_ptr()) + bi * V * 4 * (f32 ? 4 : 8);
     // Vertices: the float path's scale and outcode, the exact path's snap.
+    const Ctx cx{P, f32, faces.data_ptr<int64_t>(), vert.data(), H, W, S, cull};
     at::parallel_for(0, V, 4096, [&](int64_t lo, int64_t hi) {
+      // Locals: the outcode is a byte store, which may alias anything.
+      const Ctx vc = cx;
+      const double vsx = sx, vsy = sy;
+      const bool snap = S > 0;
+      Vert* const out = vert.data();
       for (int64_t v = lo; v < hi; ++v) {
-        const double* p = P + 4 * v;
-        VertCold& o = vcold[v];
-        int ex = 0;
-        std::frexp(std::max({std::abs(p[0]), std::abs(p[1]), std::abs(p[2]), std::abs(p[3])}), &ex);
-        o.s = std::ldexp(1.0, -ex);
-        const double X = p[0] * o.s, Y = p[1] * o.s, Z = p[2] * o.s, Wc = p[3] * o.s;
+        double p[4];
+        vc.corner(v, p);
+        if (!(std::isfinite(p[0]) && std::isfinite(p[1]) && std::isfinite(p[2]) && std::isfinite(p[3])))
+          bad.store(true, std::memory_order_relaxed);
+        const double s = pow2_scale(max_abs4(p));
+        const double X = p[0] * s, Y = p[1] * s, Z = p[2] * s, Wc = p[3] * s;
         uint8_t code = uint8_t((X > Wc) | ((X < -Wc) << 1) | ((Y > Wc) << 2) | ((Y < -Wc) << 3) | ((Z > Wc) << 4) |
                          ((Z < -Wc) << 5));
-        vq[2 * v] = vq[2 * v + 1] = 0;
-        if (S > 0 && p[3] > 0) {
-          o.nx = p[0] / p[3];
-          o.ny = p[1] / p[3];
-          o.nz = p[2] / p[3];
-          const double fx = o.nx * sx, fy = o.ny * sy;
+        Vert& o = out[v];
+        o.x = o.y = 0;
+        if (snap && p[3] > 0) {
+          const double fx = (p[0] / p[3]) * vsx, fy = (p[1] / p[3]) * vsy;
           if (std::abs(fx) <= kGuard && std::abs(fy) <= kGuard) {
             code |= kSnapped;
-            vq[2 * v] = int32_t(std::nearbyint(fx));
-            vq[2 * v + 1] = int32_t(std::nearbyint(fy));
+            o.x = int32_t(round_even(fx));
+            o.y = int32_t(round_even(fy));
           }
         }
-        vcode[v] = code;
+        o.code = code;
       }
     });
-    const Ctx cx{P, faces.data_ptr<int64_t>(), vcode.data(), vq.data(), vcold.data(), H, W, S, cull};
-    // Triangles: which path, and the bands of rows they touch.
-    at::parallel_for(0, F, 2048, [&](int64_t lo, int64_t hi) {
-      Exact e;
-      Float fl;
-      for (int64_t f = lo; f < hi; ++f) {
-        const int64_t* fv = cx.faces + 3 * f;
-        const uint8_t c0 = vcode[fv[0]], c1 = vcode[fv[1]], c2 = vcode[fv[2]];
-        kind[f] = DEAD;
-        if (c0 & c1 & c2 & ~kSnapped) continue;
-        if (c0 & c1 & c2 & kSnapped) {
-          if (!setup_exact(cx, f, e, true)) continue;
-          kind[f] = EXACT;
-          band0[f] = int32_t(e.r0 / kBand);
-          band1[f] = int32_t(e.r1 / kBand);
-        } else {
-          if (!setup_float(cx, f, fl)) continue;
-          kind[f] = FLOAT;
-          band0[f] = int32_t(fl.r0 / kBand);
-          band1[f] = int32_t(fl.r1 / kBand);
-        }
-      }
-    });
-    // Binning: per chunk of triangles a count per band, then offsets so
-    // that every band lists its triangles in increasing id.
+    // Triangles, in chunks: which path, and the bands of rows they touch,
+    // listed per chunk for the few that survive (the binning then never
+    // scans the dead ones), with a count per band.
     const int64_t chunk = std::max<int64_t>(4096, (F + 63) / 64);
     const int64_t nch = std::max<int64_t>(1, (F + chunk - 1) / chunk);
     std::vector<int64_t> cnt(nch * nb, 0);
-    at::parallel_for(0, nch, 1, [&](int64_t lo, int64_t hi) {
-      for (int64_t ch = lo; ch < hi; ++ch)
-        for (int64_t f = ch * chunk; f < std::min(F, (ch + 1) * chunk); ++f)
-          if (kind[f] != DEAD)
-            for (int32_t b = band0[f]; b <= band1[f]; ++b) ++cnt[ch * nb + b];
+    std::vector<std::vector<Live>> live(nch);
+    at::parallel_for(0, nch, 1, [&](int64_t lo_ch, int64_t hi_ch) {
+      const Ctx tc = cx;  // a local copy: the list writes could alias the captured one (reloaded per triangle)
+      const uint64_t nv = uint64_t(V);
+      Exact e;
+      Float fl;
+      for (int64_t ch = lo_ch; ch < hi_ch; ++ch) {
+        const int64_t lo = ch * chunk, hi = std::min(F, lo + chunk);
+        std::vector<Live>& out = live[ch];
+        out.clear();
+        for (int64_t f = lo; f < hi; ++f) {
+          if (f + kAhead < hi) {
+            const int64_t* fa = tc.faces + 3 * (f + kAhead);
+            for (int i = 0; i < 3; ++i)
+              if (uint64_t(fa[i]) < nv) RASTER_PREFETCH(tc.vert + fa[i]);
+          }
+          const int64_t* fv = tc.faces + 3 * f;
+          if ((uint64_t(fv[0]) >= nv) | (uint64_t(fv[1]) >= nv) | (uint64_t(fv[2]) >= nv)) {
+            bad.store(true, std::memory_order_relaxed);
+            continue;
+          }
+          const uint8_t c0 = tc.vert[fv[0]].code, c1 = tc.vert[fv[1]].code, c2 = tc.vert[fv[2]].code;
+          if (c0 & c1 & c2 & ~kSnapped) continue;
+          if (c0 & c1 & c2 & kSnapped) {
+            if (!exact_box(tc, f, e) || !exact_edges(tc, e) || !exact_covers_any(tc, e)) continue;
+            out.push_back({int32_t(f), int32_t(e.r0 / kBand), int32_t(e.r1 / kBand),
+                           {int32_t(fv[0]), int32_t(fv[1]), int32_t(fv[2])},
+                           {int32_t(e.x[0]), int32_t(e.x[1]), int32_t(e.x[2])},
+                           {int32_t(e.y[0]), int32_t(e.y[1]), int32_t(e.y[2])}});
+          } else {
+            if (!setup_float(tc, f, fl)) continue;
+            out.push_back({int32_t(f) | kFloatBit, int32_t(fl.r0 / kBand), int32_t(fl.r1 / kBand), {}, {}, {}});
+          }
+        }
+        for (const Live& t : out)
+          for (int32_t b = t.band0; b <= t.band1; ++b) ++cnt[ch * nb + b];
+      }
     });
+    if (bad.load()) return {torch::empty({0}, torch::kInt64), torch::empty({0}, torch::kFloat64)};
     std::vector<int64_t> start(nb + 1, 0);
     int64_t total = 0;
     for (int64_t b = 0; b < nb; ++b) {
@@ -304,120 +476,159 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
       }
     }
     start[nb] = total;
-    std::vector<int32_t> list(total);
+    std::vector<const Live*> list(total);
     at::parallel_for(0, nch, 1, [&](int64_t lo, int64_t hi) {
       for (int64_t ch = lo; ch < hi; ++ch)
-        for (int64_t f = ch * chunk; f < std::min(F, (ch + 1) * chunk); ++f)
-          if (kind[f] != DEAD)
-            for (int32_t b = band0[f]; b <= band1[f]; ++b) list[cnt[ch * nb + b]++] = int32_t(f);
+        for (const Live& t : live[ch])
+          for (int32_t b = t.band0; b <= t.band1; ++b) list[cnt[ch * nb + b]++] = &t;
     });
     // Bands: each thread owns its rows of the output.
     int64_t* oid = out_id + bi * HW;
     double* oz = out_z + bi * HW;
     const double* bfz = has_floor ? fz + bi * HW : nullptr;
     const int64_t* bfi = has_floor ? fi + bi * HW : nullptr;
-    at::parallel_for(0, nb, 1, [&](int64_t lo, int64_t hi) {
-      Exact e;
-      Float fl;
-      // K > 1: the band's k-buffer, in cache, written out per layer at the
-      // end of the band; K = 1 works in the output itself.
-      std::vector<double> kz(K > 1 ? kBand * W * K : 0);
-      std::vector<int64_t> ki(K > 1 ? kBand * W * K : 0);
-      for (int64_t band = lo; band < hi; ++band) {
-        const int64_t R0 = band * kBand, R1 = std::min(H, R0 + kBand);
-        // Pixel p's K entries start at zb / ib + (p - p0) * K.
-        double* zb = K > 1 ? kz.data() : oz;
-        int64_t* ib = K > 1 ? ki.data() : oid;
-        const int64_t p0 = K > 1 ? R0 * W : 0;
-        for (int64_t j = (R0 * W - p0) * K; j < (R1 * W - p0) * K; ++j) {
-          zb[j] = INFINITY;
-          ib[j] = count ? 0 : kEmpty;
-        }
-        // One covered fragment (z in range): count it, or the depth test.
-        auto frag = [&](int64_t p, double z, int64_t f) {
-          if (!(z >= -1 && z <= 1)) return;
-          if (count) {
-            ++oid[p];
-            return;
+    // Plain (one layer, no floor, no count: rasterize itself) is compiled
+    // on its own, the per-fragment test without the branches of the other
+    // modes.
+    auto bands = [&](auto plain) {
+      using Plain = decltype(plain);
+      dynamic_for(nb, [&](auto&& next_band) {
+        // Local copies of what the loops read: through the captured
+        // references the compiler must assume that the id and depth stores
+        // may change them, and reloaded them for every pixel.
+        const int64_t Wl = W, Hl = H, Kl = K, Sl = S, HWl = HW, Bl = B, bil = bi;
+        const bool countl = count, floorl = has_floor;
+        const double *const xsl = xs.data(), *const ysl = ys.data(), *const bfzl = bfz;
+        const int64_t *const startl = start.data(), *const bfil = bfi;
+        const Live* const* const listl = list.data();
+        double* const ozl = oz;
+        int64_t *const oidl = oid, *const out_idl = out_id;
+        const Ctx cxl = cx;
+        Exact e;
+        Float fl;
+        // K > 1: the band's k-buffer, in cache, written out per layer at the
+        // end of the band; K = 1 works in the output itself.
+        std::vector<double> kz(Kl > 1 ? kBand * Wl * Kl : 0);
+        std::vector<int64_t> ki(Kl > 1 ? kBand * Wl * Kl : 0);
+        for (int64_t band; (band = next_band()) >= 0;) {
+          const int64_t R0 = band * kBand, R1 = std::min(Hl, R0 + kBand);
+          // Pixel p's K entries start at zb / ib + (p - p0) * K.
+          double* zb = Kl > 1 ? kz.data() : ozl;
+          int64_t* ib = Kl > 1 ? ki.data() : oidl;
+          const int64_t p0 = Kl > 1 ? R0 * Wl : 0;
+          for (int64_t j = (R0 * Wl - p0) * Kl; j < (R1 * Wl - p0) * Kl; ++j) {
+            zb[j] = INFINITY;
+            ib[j] = countl ? 0 : kEmpty;
           }
-          if (has_floor && !(z > bfz[p] || (z == bfz[p] && f > bfi[p]))) return;
-          // The pixel's K nearest fragments so far in (depth, id) order (a
-          // k-buffer; K = 1: the z-buffer): insert unless behind the K-th.
-          double* zs = zb + (p - p0) * K;
-          int64_t* is = ib + (p - p0) * K;
-          int64_t k = K - 1;
-          if (!(z < zs[k] || (z == zs[k] && f < is[k]))) return;
-          for (; k > 0 && (z < zs[k - 1] || (z == zs[k - 1] && f < is[k - 1])); --k) {
-            zs[k] = zs[k - 1];
-            is[k] = is[k - 1];
-          }
-          zs[k] = z;
-          is[k] = f;
-        };
-        for (int64_t li = start[band]; li < start[band + 1]; ++li) {
-          const int64_t f = list[li];
-          if (kind[f] == EXACT) {
-            if (!setup_exact(cx, f, e)) continue;  // a depth plane that is not finite
-            const int64_t h = int64_t(1) << (S - 1), step = 2 * h;
-            const int64_t r0 = std::max(e.r0, R0), r1 = std::min(e.r1, R1 - 1);
-            const int64_t qx0 = (2 * e.c0 + 1 - W) * h;
-            for (int64_t r = r0; r <= r1; ++r) {
-              const int64_t qy = (2 * r + 1 - H) * h;
-              int64_t E0 = e.a[0] * qx0 + e.c[0] + e.b[0] * qy;
-              int64_t E1 = e.a[1] * qx0 + e.c[1] + e.b[1] * qy;
-              int64_t E2 = e.a[2] * qx0 + e.c[2] + e.b[2] * qy;
-              const int64_t s0 = e.a[0] * step, s1 = e.a[1] * step, s2 = e.a[2] * step;
-              const double dy = e.zy * (ys[r] - e.y0);
-              if (e.c1 - e.c0 < 8) {
-                for (int64_t c = e.c0; c <= e.c1; ++c, E0 += s0, E1 += s1, E2 += s2) {
-                  if (E0 >= e.thr[0] && E1 >= e.thr[1] && E2 >= e.thr[2])
-                    frag(r * W + c, (e.z0 + e.zx * (xs[c] - e.x0)) + dy, f);
+          // One covered fragment (z in range): count it, or the depth test.
+          auto frag = [&](int64_t p, double z, int64_t f) {
+            if (!(z >= -1 && z <= 1)) return;
+            if constexpr (Plain::value) {
+              if (z < ozl[p] || (z == ozl[p] && f < oidl[p])) {
+                ozl[p] = z;
+                oidl[p] = f;
+              }
+              return;
+            }
+            if (countl) {
+              ++oidl[p];
+              return;
+            }
+            if (floorl && !(z > bfzl[p] || (z == bfzl[p] && f > bfil[p]))) return;
+            // The pixel's K nearest fragments so far in (depth, id) order (a
+            // k-buffer; K = 1: the z-buffer): insert unless behind the K-th.
+            double* zs = zb + (p - p0) * Kl;
+            int64_t* is = ib + (p - p0) * Kl;
+            int64_t k = Kl - 1;
+            if (!(z < zs[k] || (z == zs[k] && f < is[k]))) return;
+            for (; k > 0 && (z < zs[k - 1] || (z == zs[k - 1] && f < is[k - 1])); --k) {
+              zs[k] = zs[k - 1];
+              is[k] = is[k - 1];
+            }
+            zs[k] = z;
+            is[k] = f;
+          };
+          for (int64_t li = startl[band]; li < startl[band + 1]; ++li) {
+            // The corners' positions kAhead triangles ahead (the records
+            // themselves are read in order).
+            if (li + kAhead < startl[band + 1]) {
+              const Live& a = *listl[li + kAhead];
+              if (!(a.f & kFloatBit))
+                for (int i = 0; i < 3; ++i) RASTER_PREFETCH(cxl.row(a.v[i]));
+            }
+            const Live& lv = *listl[li];
+            const int64_t f = lv.f & ~kFloatBit;
+            if (!(lv.f & kFloatBit)) {
+              for (int i = 0; i < 3; ++i) {
+                e.x[i] = lv.x[i];
+                e.y[i] = lv.y[i];
+              }
+              if (!exact_box(cxl, e) || !exact_edges(cxl, e) || !exact_plane(cxl, lv.v, e)) continue;
+              const int64_t h = int64_t(1) << (Sl - 1), step = 2 * h;
+              const int64_t r0 = std::max(e.r0, R0), r1 = std::min(e.r1, R1 - 1);
+              const int64_t c0 = e.c0, c1 = e.c1, t0 = e.thr[0], t1 = e.thr[1], t2 = e.thr[2];
+              const double z0 = e.z0, zx = e.zx, x0 = e.x0;
+              const int64_t qx0 = (2 * e.c0 + 1 - Wl) * h;
+              for (int64_t r = r0; r <= r1; ++r) {
+                const int64_t qy = (2 * r + 1 - Hl) * h;
+                int64_t E0 = e.a[0] * qx0 + e.c[0] + e.b[0] * qy;
+                int64_t E1 = e.a[1] * qx0 + e.c[1] + e.b[1] * qy;
+                int64_t E2 = e.a[2] * qx0 + e.c[2] + e.b[2] * qy;
+                const int64_t s0 = e.a[0] * step, s1 = e.a[1] * step, s2 = e.a[2] * step;
+                const double dy = e.zy * (ysl[r] - e.y0);
+                if (c1 - c0 < 8) {
+                  for (int64_t c = c0; c <= c1; ++c, E0 += s0, E1 += s1, E2 += s2) {
+                    if (E0 >= t0 && E1 >= t1 && E2 >= t2) frag(r * Wl + c, (z0 + zx * (xsl[c] - x0)) + dy, f);
+                  }
+                  continue;
                 }
-                continue;
+                // Wider boxes: the row's span solved exactly per edge (E is
+                // affine in the column, steps s_k), then no test per pixel.
+                int64_t lo = 0, hi = c1 - c0;
+                const int64_t Es[3] = {E0, E1, E2}, ss[3] = {s0, s1, s2};
+                for (int k = 0; k < 3 && lo <= hi; ++k) {
+                  const int64_t d = Es[k] - e.thr[k];  // inside where d + ss[k] * i >= 0
+                  if (ss[k] > 0)
+                    lo = std::max(lo, -floor_div(d, ss[k]));
+                  else if (ss[k] < 0)
+                    hi = std::min(hi, floor_div(d, -ss[k]));
+                  else if (d < 0)
+                    hi = -1;
+                }
+                for (int64_t c = c0 + lo; c <= c0 + hi; ++c) frag(r * Wl + c, (z0 + zx * (xsl[c] - x0)) + dy, f);
               }
-              // Wider boxes: the row's span solved exactly per edge (E is
-              // affine in the column, steps s_k), then no test per pixel.
-              int64_t lo = 0, hi = e.c1 - e.c0;
-              const int64_t Es[3] = {E0, E1, E2}, ss[3] = {s0, s1, s2};
-              for (int k = 0; k < 3 && lo <= hi; ++k) {
-                const int64_t d = Es[k] - e.thr[k];  // inside where d + ss[k] * i >= 0
-                if (ss[k] > 0)
-                  lo = std::max(lo, -floor_div(d, ss[k]));
-                else if (ss[k] < 0)
-                  hi = std::min(hi, floor_div(d, -ss[k]));
-                else if (d < 0)
-                  hi = -1;
-              }
-              for (int64_t c = e.c0 + lo; c <= e.c0 + hi; ++c)
-                frag(r * W + c, (e.z0 + e.zx * (xs[c] - e.x0)) + dy, f);
-            }
-          } else {
-            setup_float(cx, f, fl);
-            const int64_t r0 = std::max(fl.r0, R0), r1 = std::min(fl.r1, R1 - 1);
-            for (int64_t r = r0; r <= r1; ++r) {
-              const double y = ys[r];
-              const double by0 = fl.b[0] * y, by1 = fl.b[1] * y, by2 = fl.b[2] * y, zy = fl.zc[1] * y;
-              for (int64_t c = fl.c0; c <= fl.c1; ++c) {
-                const double x = xs[c];
-                if ((fl.a[0] * x + fl.c[0]) + by0 >= fl.thr[0] && (fl.a[1] * x + fl.c[1]) + by1 >= fl.thr[1] &&
-                    (fl.a[2] * x + fl.c[2]) + by2 >= fl.thr[2])
-                  frag(r * W + c, (fl.zc[0] * x + fl.zc[2]) + zy, f);
+            } else {
+              setup_float(cxl, f, fl);
+              const int64_t r0 = std::max(fl.r0, R0), r1 = std::min(fl.r1, R1 - 1);
+              for (int64_t r = r0; r <= r1; ++r) {
+                const double y = ysl[r];
+                const double by0 = fl.b[0] * y, by1 = fl.b[1] * y, by2 = fl.b[2] * y, zy = fl.zc[1] * y;
+                for (int64_t c = fl.c0; c <= fl.c1; ++c) {
+                  const double x = xsl[c];
+                  if ((fl.a[0] * x + fl.c[0]) + by0 >= fl.thr[0] && (fl.a[1] * x + fl.c[1]) + by1 >= fl.thr[1] &&
+                      (fl.a[2] * x + fl.c[2]) + by2 >= fl.thr[2])
+                    frag(r * Wl + c, (fl.zc[0] * x + fl.zc[2]) + zy, f);
+                }
               }
             }
           }
-        }
-        if (K > 1) {
-          for (int64_t p = R0 * W; p < R1 * W; ++p) {
-            const int64_t* is = ib + (p - p0) * K;
-            for (int64_t k = 0; k < K; ++k) out_id[k * B * HW + bi * HW + p] = is[k] == kEmpty ? -1 : is[k];
-            oz[p] = zb[(p - p0) * K + K - 1];
+          if (Kl > 1) {
+            for (int64_t p = R0 * Wl; p < R1 * Wl; ++p) {
+              const int64_t* is = ib + (p - p0) * Kl;
+              for (int64_t k = 0; k < Kl; ++k) out_idl[k * Bl * HWl + bil * HWl + p] = is[k] == kEmpty ? -1 : is[k];
+              ozl[p] = zb[(p - p0) * Kl + Kl - 1];
+            }
+          } else if (!countl) {
+            for (int64_t p = R0 * Wl; p < R1 * Wl; ++p)
+              if (oidl[p] == kEmpty) oidl[p] = -1;
           }
-        } else if (!count) {
-          for (int64_t p = R0 * W; p < R1 * W; ++p)
-            if (oid[p] == kEmpty) oid[p] = -1;
         }
-      }
-    });
+      });
+    };
+    if (K == 1 && !has_floor && !count)
+      bands(std::true_type{});
+    else
+      bands(std::false_type{});
   }
   return {ids, depth};
 }
@@ -440,9 +651,7 @@ struct Tri {
       X[i] = v[0], Y[i] = v[1], Z[i] = v[2], Wc[i] = v[3];
       m = std::max({m, std::abs(v[0]), std::abs(v[1]), std::abs(v[2]), std::abs(v[3])});
     }
-    int ex = 0;
-    std::frexp(m, &ex);
-    sc = std::ldexp(T(1), -ex);
+    sc = pow2_scale(m);
     for (int i = 0; i < 3; ++i) X[i] *= sc, Y[i] *= sc, Z[i] *= sc, Wc[i] *= sc;
     for (int i = 0; i < 3; ++i) {
       const int j = (i + 1) % 3, k = (i + 2) % 3;
@@ -573,13 +782,11 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
   const int64_t N = first[rows];
   auto opt = pos.options();
   auto idx = torch::empty({N}, tri_id.options());
-  // Mostly background (a deep depth-peeling layer): the dense outputs start
-  // as zeros (a parallel fill) and only covered pixels are written; else
-  // every pixel is written once, zeros included.
-  const bool prezero = 2 * N < rows * W;
-  auto dense = [&](at::IntArrayRef shape, const at::TensorOptions& o) {
-    return prezero ? torch::zeros(shape, o) : torch::empty(shape, o);
-  };
+  // Every byte of the dense outputs is written once: covered pixels by the
+  // formula, background runs of a row by one memset per output (zeros
+  // first and covered pixels after cost a second pass over the covered
+  // ones, the bound of a mostly covered image).
+  auto dense = [&](at::IntArrayRef shape, const at::TensorOptions& o) { return torch::empty(shape, o); };
   std::vector<torch::Tensor> out{idx};
   if (packed) {
     out.push_back(dense({B, H, W, 4}, opt));  // rast: (b0, b1, depth, id + 1 + offset), 0 on background
@@ -599,28 +806,42 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
     for (size_t i = 1; i < out.size(); ++i) o.push_back(out[i].data_ptr<T>());
     const T sx = T(2.0 / double(W)), sy = T(-2.0 / double(H));
     const T hx = T(2.0 / double(W)), hy = T(2.0 / double(H));
-    at::parallel_for(0, rows, 16, [&](int64_t lo, int64_t hi) {
+    constexpr int64_t kRows = 8;  // rows an item
+    dynamic_for((rows + kRows - 1) / kRows, [&](auto&& next_block) {
       T b[3], dx[3], dy[3];
       Tri<T> tri;
       int64_t loaded = -1;  // the (batch, face) in tri
-      for (int64_t r = lo; r < hi; ++r) {
+      for (int64_t blk; (blk = next_block()) >= 0;)
+      for (int64_t r = blk * kRows; r < std::min(rows, (blk + 1) * kRows); ++r) {
         const int64_t bi = r / H, row = r - bi * H;
         // _pixel_centres: (i + 0.5) * (2 / n) - 1, negated for rows.
         const T y = -((T(row) + T(0.5)) * hy - T(1));
         int64_t n = first[r];
+        int64_t bg = r * W;  // the current background run is [bg, p)
+        auto zero_run = [&](int64_t end) {
+          if (end == bg) return;
+          const size_t m = size_t(end - bg) * sizeof(T);
+          if (packed) {
+            std::memset(o[0] + 4 * bg, 0, 4 * m);
+            std::memset(o[1] + 4 * bg, 0, 4 * m);
+          } else {
+            for (int k : {3, 5, 6}) std::memset(o[k] + 3 * bg, 0, 3 * m);
+            std::memset(o[4] + bg, 0, m);
+          }
+        };
         for (int64_t col = 0; col < W; ++col) {
           const int64_t p = r * W + col;
           const int64_t f = pid[p];
-          if (f < 0) {
-            if (prezero) continue;
-            if (packed) {
-              for (int k = 0; k < 4; ++k) o[0][4 * p + k] = o[1][4 * p + k] = 0;
-            } else {
-              for (int k = 0; k < 3; ++k) o[3][3 * p + k] = o[5][3 * p + k] = o[6][3 * p + k] = 0;
-              o[4][p] = 0;
-            }
-            continue;
+          if (f < 0) continue;  // background costs one test (most of a deep peeling layer)
+          // Small triangles change every pixel: their face rows 2 kAhead
+          // pixels ahead, then (those rows in cache) their corners.
+          if (col + 2 * kAhead < W && pid[p + 2 * kAhead] >= 0) RASTER_PREFETCH(pf + 3 * pid[p + 2 * kAhead]);
+          if (col + kAhead < W && pid[p + kAhead] >= 0 && pid[p + kAhead] != pid[p + kAhead - 1]) {
+            const int64_t* fa = pf + 3 * pid[p + kAhead];
+            for (int i = 0; i < 3; ++i) RASTER_PREFETCH(pp + 4 * (bi * V + fa[i]));
           }
+          zero_run(p);
+          bg = p + 1;
           if (bi * F + f != loaded) {
             const int64_t rows3[3] = {bi * V + pf[3 * f], bi * V + pf[3 * f + 1], bi * V + pf[3 * f + 2]};
             tri.load(pp, rows3);
@@ -644,6 +865,7 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
           }
           ++n;
         }
+        zero_run((r + 1) * W);
       }
     });
   });
