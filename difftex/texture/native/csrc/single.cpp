@@ -551,6 +551,22 @@ DT_AVX2 void forward8(const Args<float>& A, const Group8<K>& g, const float* tex
 
 constexpr int kGroups = kBlock / 8;  // groups of a block
 
+// Prepares the block of groups of points from q (up to full, a batch entry's points on texture tex) and
+// prefetches their lines; ok[i]: group i is finite. Returns the group count.
+template <int K>
+DT_AVX2 int prepare_block(const Args<float>& A, const float* tex, int64_t C, int64_t q, int64_t full, Group8<K>* grp,
+                          bool* ok) {
+  const int n = static_cast<int>(std::min<int64_t>(kGroups, (full - q) / 8));
+  for (int i = 0; i < n; ++i) {
+    __m256 u, v;
+    ok[i] = load8(A.uv + 2 * (q + 8 * i), u, v);
+    if (!ok[i]) continue;
+    prepare8<K>(A, u, v, grp[i]);
+    prefetch8<K, false>(grp[i], tex, C, A.plane);
+  }
+  return n;
+}
+
 // forward_range of points [lo, hi), within each batch entry by blocks of groups of eight (a group holding a
 // non-finite coordinate, and the tail, through the scalar loop).
 template <int KIND, int CC, bool kBorder>
@@ -558,30 +574,28 @@ __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t 
                                                             float* out) {
   constexpr int K = taps_of<KIND>();
   const int64_t C = CC > 0 ? CC : A.C, M = A.M;
-  Group8<K> grp[kGroups];
-  bool ok[kGroups];
+  // Two blocks in flight: block i + 1 is prepared and its lines prefetched before block i is read, so each
+  // prefetch leads its reads by a block (measured: prefetching a block just before reading it left two threads
+  // no faster than one on a 1024^2 texture).
+  Group8<K> grp[2][kGroups];
+  bool ok[2][kGroups];
   for (int64_t p = lo; p < hi;) {
-    const int64_t b = p / M, end = std::min(hi, (b + 1) * M);
+    const int64_t b = p / M, end = std::min(hi, (b + 1) * M), full = p + (end - p) / 8 * 8;
     const float* tex = A.tex + (A.Bt == 1 ? 0 : b) * C * A.plane;
     float* o = out + b * C * M - b * M;  // o[p] is point p's first channel
-    int64_t q = p;
-    while (q + 8 <= end) {
-      const int n = static_cast<int>(std::min<int64_t>(kGroups, (end - q) / 8));
-      for (int i = 0; i < n; ++i) {
-        __m256 u, v;
-        ok[i] = load8(A.uv + 2 * (q + 8 * i), u, v);
-        if (!ok[i]) continue;
-        prepare8<K>(A, u, v, grp[i]);
-        prefetch8<K, false>(grp[i], tex, C, A.plane);
-      }
+    int cur = 0, n = prepare_block<K>(A, tex, C, p, full, grp[0], ok[0]);
+    for (int64_t q = p; q < full; cur ^= 1) {
+      const int64_t next = q + 8 * n;
+      const int m = next < full ? prepare_block<K>(A, tex, C, next, full, grp[cur ^ 1], ok[cur ^ 1]) : 0;
       for (int i = 0; i < n; ++i, q += 8) {
-        if (ok[i])
-          forward8<K, CC, kBorder>(A, grp[i], tex, o + q, M);
+        if (ok[cur][i])
+          forward8<K, CC, kBorder>(A, grp[cur][i], tex, o + q, M);
         else
           forward_range<float, KIND, CC, kBorder>(q, q + 8, A, out);
       }
+      n = m;
     }
-    if (q < end) forward_range<float, KIND, CC, kBorder>(q, end, A, out);
+    if (full < end) forward_range<float, KIND, CC, kBorder>(full, end, A, out);
     p = end;
   }
 }
@@ -641,6 +655,39 @@ DT_AVX2 void backward8(const Args<float>& A, const Group8<K>& g, const int64_t* 
   }
 }
 
+// Prepares the block of groups of points idx[s ..] (up to full) for backward8 and prefetches the lines it
+// reads (guv) and writes (gt): gofs, the points' offsets in grad [B, C, M]; tb, their texture's offset; ok[i]:
+// group i is finite and on one texture. Returns the group count.
+template <int K, int CC>
+DT_AVX2 int prepare_points(const Args<float>& A, const int64_t* idx, int64_t s, int64_t full, const float* gt,
+                           const float* guv, Group8<K>* grp, __m256i* gofs, int64_t* tb, bool* ok) {
+  const int64_t C = CC > 0 ? CC : A.C, M = A.M;
+  const int m = static_cast<int>(std::min<int64_t>(kGroups, (full - s) / 8));
+  for (int i = 0; i < m; ++i) {
+    const int64_t* p = idx + s + 8 * i;
+    alignas(32) float us[8], vs[8];
+    alignas(32) int32_t go[8];
+    const int64_t b0 = p[0] / M;
+    bool good = true;
+    for (int j = 0; j < 8; ++j) {
+      const int64_t b = p[j] / M;
+      good = good && (A.Bt == 1 || b == b0);
+      us[j] = A.uv[2 * p[j]];
+      vs[j] = A.uv[2 * p[j] + 1];
+      go[j] = static_cast<int32_t>(p[j] + b * (C - 1) * M);
+    }
+    const __m256 u = _mm256_load_ps(us), v = _mm256_load_ps(vs);
+    ok[i] = good && finite8(u, v);
+    if (!ok[i]) continue;
+    gofs[i] = _mm256_load_si256(reinterpret_cast<const __m256i*>(go));
+    tb[i] = (A.Bt == 1 ? 0 : b0) * C * A.plane;
+    prepare8<K>(A, u, v, grp[i]);
+    if (guv != nullptr) prefetch8<K, false>(grp[i], A.tex + tb[i], C, A.plane);
+    if (gt != nullptr) prefetch8<K, true>(grp[i], gt + tb[i], C, A.plane);
+  }
+  return m;
+}
+
 // The backward of points idx[0, n) by blocks of groups of eight (see backward8); the groups it declines (a
 // non-finite coordinate, points on two textures) and the tail go through the scalar loop.
 template <int KIND, int CC, bool kBorder>
@@ -648,45 +695,30 @@ __attribute__((target("avx2,fma"))) void backward_avx2(const Args<float>& A, con
                                                        const float* grad, float* gt, float* guv) {
   constexpr int K = taps_of<KIND>();
   const int64_t C = CC > 0 ? CC : A.C, M = A.M;
-  Group8<K> grp[kGroups];
-  __m256i gofs[kGroups];
-  int64_t tb[kGroups];
-  bool ok[kGroups];
+  // Two blocks in flight, as forward_range_avx2.
+  Group8<K> grp[2][kGroups];
+  __m256i gofs[2][kGroups];
+  int64_t tb[2][kGroups];
+  bool ok[2][kGroups];
   Block<float, KIND> bl;
+  const int64_t full = n / 8 * 8;
   int64_t s = 0;
-  while (s + 8 <= n) {
-    const int m = static_cast<int>(std::min<int64_t>(kGroups, (n - s) / 8));
-    for (int i = 0; i < m; ++i) {
-      const int64_t* p = idx + s + 8 * i;
-      alignas(32) float us[8], vs[8];
-      alignas(32) int32_t go[8];  // the points' offsets in grad [B, C, M]
-      const int64_t b0 = p[0] / M;
-      ok[i] = true;
-      for (int j = 0; j < 8; ++j) {
-        const int64_t b = p[j] / M;
-        ok[i] = ok[i] && (A.Bt == 1 || b == b0);
-        us[j] = A.uv[2 * p[j]];
-        vs[j] = A.uv[2 * p[j] + 1];
-        go[j] = static_cast<int32_t>(p[j] + b * (C - 1) * M);
-      }
-      const __m256 u = _mm256_load_ps(us), v = _mm256_load_ps(vs);
-      ok[i] = ok[i] && finite8(u, v);
-      if (!ok[i]) continue;
-      gofs[i] = _mm256_load_si256(reinterpret_cast<const __m256i*>(go));
-      tb[i] = (A.Bt == 1 ? 0 : b0) * C * A.plane;
-      prepare8<K>(A, u, v, grp[i]);
-      if (guv != nullptr) prefetch8<K, false>(grp[i], A.tex + tb[i], C, A.plane);
-      if (gt != nullptr) prefetch8<K, true>(grp[i], gt + tb[i], C, A.plane);
-    }
+  int cur = 0, m = full > 0 ? prepare_points<K, CC>(A, idx, 0, full, gt, guv, grp[0], gofs[0], tb[0], ok[0]) : 0;
+  for (; s < full; cur ^= 1) {
+    const int64_t next = s + 8 * m;
+    const int m2 = next < full ? prepare_points<K, CC>(A, idx, next, full, gt, guv, grp[cur ^ 1], gofs[cur ^ 1],
+                                                       tb[cur ^ 1], ok[cur ^ 1])
+                               : 0;
     for (int i = 0; i < m; ++i, s += 8) {
-      if (ok[i]) {
-        backward8<K, CC, kBorder>(A, grp[i], idx + s, gofs[i], tb[i], grad, gt, guv);
+      if (ok[cur][i]) {
+        backward8<K, CC, kBorder>(A, grp[cur][i], idx + s, gofs[cur][i], tb[cur][i], grad, gt, guv);
         continue;
       }
       bl.cnt = 8;
       for (int j = 0; j < 8; ++j) bl.p[j] = idx[s + j];
       backward_block<float, KIND, CC, kBorder>(bl, A, grad, gt, guv);
     }
+    m = m2;
   }
   for (; s < n; s += kBlock) {
     bl.cnt = static_cast<int>(std::min<int64_t>(kBlock, n - s));
