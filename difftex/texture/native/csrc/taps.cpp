@@ -104,8 +104,9 @@ void forward_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<Level
 // gather; the other groups, and every point with a non-finite coordinate,
 // go through the scalar loop. The coordinates are common.h's fold and
 // place in double (the same texels and fractions as the scalar loop, bit
-// for bit), the texel arithmetic is the scalar loop's float32 arithmetic
-// in the same order.
+// for bit, where clamp and border keep x within [-2, n + 1]; past it both
+// taps read the same edge texel or constant either way), the texel
+// arithmetic is the scalar loop's float32 arithmetic in the same order.
 // ---------------------------------------------------------------------------
 #if DT_HAVE_AVX2
 
@@ -508,9 +509,10 @@ __attribute__((target("avx2,fma"))) void prefetch8(const int64_t* e, int64_t C, 
 
 template <int CC, bool kBorder>
 __attribute__((target("avx2,fma"))) bool backward8(const int64_t* e, int64_t Cdyn, const std::vector<Level>& L,
-                       const std::vector<const float*>& lp, const float* puv, const float* pd, const float* pg,
-                       const Grads<float>& out, int64_t gsc, int64_t gsm, int64_t wrap_u, int64_t wrap_v,
-                       double border, bool nearest, bool d_grad) {
+                                                   const std::vector<const float*>& lp, const float* puv,
+                                                   const float* pd, const float* pg, const Grads<float>& out,
+                                                   int64_t gsc, int64_t gsm, int64_t wrap_u, int64_t wrap_v,
+                                                   double border, bool nearest, bool d_grad) {
   const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
   alignas(32) double u[8], v[8];
   for (int j = 0; j < 8; ++j) {
