@@ -389,8 +389,10 @@ void backward_block(Block<scalar_t, KIND>& bl, const Args<scalar_t>& A, const sc
 // ---------------------------------------------------------------------------
 // The float32 bilinear / bicubic reads eight points at a time (AVX2), where
 // the CPU has AVX2 and FMA (checked at run time; the scalar loops above
-// serve elsewhere, for float64, and for groups of eight holding a
-// non-finite coordinate). Measured against the scalar loop: the per-point
+// serve elsewhere and for float64). Every float32 point goes through it,
+// a tail group and the finite points of a group holding a non-finite one
+// included (live lanes), so that how points fall into groups, which the
+// thread count changes, changes no bit. Measured against the scalar loop: the per-point
 // tap arithmetic and the one-texel-at-a-time loads were most of its time,
 // even for a texture in L1 (3.9 of 7.5 ms for 512^2 points on 2 threads).
 // Eight points' taps are computed in vector registers, each tap's texels
@@ -480,25 +482,48 @@ DT_AVX2 void axis8(__m256 u, int32_t n, int mode, Axis8<K>& a) {
   }
 }
 
-// Whether the eight points' u and v are all finite (x - x is 0 for finite x, NaN for inf and NaN).
-DT_AVX2 bool finite8(__m256 u, __m256 v) {
+// Lanes whose u and v are both finite, as a bit mask (x - x is 0 for finite x, NaN for inf and NaN).
+DT_AVX2 int finite_lanes(__m256 u, __m256 v) {
   const __m256 z = _mm256_add_ps(_mm256_sub_ps(u, u), _mm256_sub_ps(v, v));
-  return _mm256_movemask_ps(_mm256_cmp_ps(z, _mm256_setzero_ps(), _CMP_EQ_OQ)) == 0xFF;
+  return _mm256_movemask_ps(_mm256_cmp_ps(z, _mm256_setzero_ps(), _CMP_EQ_OQ));
 }
 
-// Eight points' (u, v) from interleaved uv; false where any is not finite.
-DT_AVX2 bool load8(const float* uv, __m256& u, __m256& v) {
+// The live lanes of a group of cnt <= 8 points: finite and below cnt. The other lanes' coordinates become 0.5,
+// which any texture reads, and nothing of them is written: every point goes through the same arithmetic
+// however the points fall into groups (a thread's share, a run of bands), so results do not depend on the
+// thread count.
+DT_AVX2 int live_lanes(int cnt, __m256& u, __m256& v) {
+  const int live = finite_lanes(u, v) & ((1 << cnt) - 1);
+  if (live != 0xFF) {
+    const __m256 keep = _mm256_castsi256_ps(_mm256_cmpgt_epi32(
+        _mm256_and_si256(_mm256_set1_epi32(live), _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128)),
+        _mm256_setzero_si256()));
+    u = _mm256_blendv_ps(_mm256_set1_ps(0.5f), u, keep);
+    v = _mm256_blendv_ps(_mm256_set1_ps(0.5f), v, keep);
+  }
+  return live;
+}
+
+// Eight points' (u, v) from interleaved uv (cnt < 8: the first cnt, the rest padded); their live lanes.
+DT_AVX2 int load8(const float* uv, int cnt, __m256& u, __m256& v) {
+  alignas(32) float pad[16];
+  if (cnt < 8) {
+    for (int j = 0; j < 16; ++j) pad[j] = j < 2 * cnt ? uv[j] : 0.5f;
+    uv = pad;
+  }
   const __m256 a = _mm256_loadu_ps(uv), b = _mm256_loadu_ps(uv + 8);
   u = _mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(_mm256_shuffle_ps(a, b, 0x88)), 0xD8));
   v = _mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(_mm256_shuffle_ps(a, b, 0xDD)), 0xD8));
-  return finite8(u, v);
+  return live_lanes(cnt, u, v);
 }
 
 // A group of eight points ready to read: both axes' taps and the taps' row offsets (row times W).
+// cnt: its points (8 but at a tail); live: the lanes it writes (live_lanes).
 template <int K>
 struct Group8 {
   Axis8<K> ax, ay;
   __m256i rows[K];
+  int cnt, live;
 };
 
 template <int K>
@@ -545,30 +570,37 @@ DT_AVX2 void forward8(const Args<float>& A, const Group8<K>& g, const float* tex
         acc = _mm256_add_ps(acc, _mm256_mul_ps(g.ax.w[q], texels8<kBorder>(plane, g, r, q, border)));
       sum = _mm256_add_ps(sum, _mm256_mul_ps(g.ay.w[r], acc));
     }
-    _mm256_storeu_ps(o + c * M, sum);
+    if (g.live == 0xFF) {
+      _mm256_storeu_ps(o + c * M, sum);
+      continue;
+    }
+    alignas(32) float part[8];
+    _mm256_store_ps(part, sum);
+    for (int j = 0; j < g.cnt; ++j)  // a non-finite coordinate reads NaN
+      o[c * M + j] = g.live >> j & 1 ? part[j] : std::numeric_limits<float>::quiet_NaN();
   }
 }
 
 constexpr int kGroups = kBlock / 8;  // groups of a block
 
-// Prepares the block of groups of points from q (up to full, a batch entry's points on texture tex) and
-// prefetches their lines; ok[i]: group i is finite. Returns the group count.
+// Prepares the block of groups of points from q (up to end, a batch entry's points on texture tex) and
+// prefetches their lines. Returns the group count.
 template <int K>
-DT_AVX2 int prepare_block(const Args<float>& A, const float* tex, int64_t C, int64_t q, int64_t full, Group8<K>* grp,
-                          bool* ok) {
-  const int n = static_cast<int>(std::min<int64_t>(kGroups, (full - q) / 8));
+DT_AVX2 int prepare_block(const Args<float>& A, const float* tex, int64_t C, int64_t q, int64_t end, Group8<K>* grp) {
+  const int n = static_cast<int>(std::min<int64_t>(kGroups, (end - q + 7) / 8));
   for (int i = 0; i < n; ++i) {
+    const int64_t first = q + 8 * i;
     __m256 u, v;
-    ok[i] = load8(A.uv + 2 * (q + 8 * i), u, v);
-    if (!ok[i]) continue;
+    grp[i].cnt = static_cast<int>(std::min<int64_t>(8, end - first));
+    grp[i].live = load8(A.uv + 2 * first, grp[i].cnt, u, v);
     prepare8<K>(A, u, v, grp[i]);
     prefetch8<K, false>(grp[i], tex, C, A.plane);
   }
   return n;
 }
 
-// forward_range of points [lo, hi), within each batch entry by blocks of groups of eight (a group holding a
-// non-finite coordinate, and the tail, through the scalar loop).
+// forward_range of points [lo, hi), within each batch entry by blocks of groups of eight (the last one
+// partial).
 template <int KIND, int CC, bool kBorder>
 __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t hi, const Args<float>& A,
                                                             float* out) {
@@ -578,41 +610,35 @@ __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t 
   // prefetch leads its reads by a block (measured: prefetching a block just before reading it left two threads
   // no faster than one on a 1024^2 texture).
   Group8<K> grp[2][kGroups];
-  bool ok[2][kGroups];
   for (int64_t p = lo; p < hi;) {
-    const int64_t b = p / M, end = std::min(hi, (b + 1) * M), full = p + (end - p) / 8 * 8;
+    const int64_t b = p / M, end = std::min(hi, (b + 1) * M);
     const float* tex = A.tex + (A.Bt == 1 ? 0 : b) * C * A.plane;
     float* o = out + b * C * M - b * M;  // o[p] is point p's first channel
-    int cur = 0, n = prepare_block<K>(A, tex, C, p, full, grp[0], ok[0]);
-    for (int64_t q = p; q < full; cur ^= 1) {
+    int cur = 0, n = prepare_block<K>(A, tex, C, p, end, grp[0]);
+    for (int64_t q = p; q < end; cur ^= 1) {
       const int64_t next = q + 8 * n;
-      const int m = next < full ? prepare_block<K>(A, tex, C, next, full, grp[cur ^ 1], ok[cur ^ 1]) : 0;
-      for (int i = 0; i < n; ++i, q += 8) {
-        if (ok[cur][i])
-          forward8<K, CC, kBorder>(A, grp[cur][i], tex, o + q, M);
-        else
-          forward_range<float, KIND, CC, kBorder>(q, q + 8, A, out);
-      }
+      const int m = next < end ? prepare_block<K>(A, tex, C, next, end, grp[cur ^ 1]) : 0;
+      for (int i = 0; i < n; ++i, q += 8) forward8<K, CC, kBorder>(A, grp[cur][i], tex, o + q, M);
       n = m;
     }
-    if (full < end) forward_range<float, KIND, CC, kBorder>(full, end, A, out);
     p = end;
   }
 }
 
-// The backward of a group of eight points p[0..8) (any indices into [B * M] on one texture, tb its offset):
-// uv gradients into guv (not null), texture gradients scattered into gt (not null). The taps, the uv gradient
-// and each tap's share of the output gradient come eight points at a time; the scatter adds the shares one
-// point after another in the scalar loop's order (the sums equal at any thread count, bands.h).
+// The backward of a group of points p[0..g.cnt) (any indices into [B * M]; the group's rows include each
+// point's texture offset): uv gradients into guv (not null), texture gradients scattered into gt (not null),
+// for the live lanes only. The taps, the uv gradient and each tap's share of the output gradient come eight
+// points at a time; the scatter adds the shares one point after another in the scalar loop's order (the sums
+// equal at any thread count, bands.h).
 template <int K, int CC, bool kBorder>
-DT_AVX2 void backward8(const Args<float>& A, const Group8<K>& g, const int64_t* p, __m256i gofs, int64_t tb,
-                       const float* grad, float* gt, float* guv) {
+DT_AVX2 void backward8(const Args<float>& A, const Group8<K>& g, const int64_t* p, __m256i gofs, const float* grad,
+                       float* gt, float* guv) {
   const int64_t C = CC > 0 ? CC : A.C, M = A.M;
   if (guv != nullptr) {
     const __m256 border = _mm256_set1_ps(A.border);
     __m256 sx = _mm256_setzero_ps(), sy = _mm256_setzero_ps();
     for (int64_t c = 0; c < C; ++c) {
-      const float* plane = A.tex + tb + c * A.plane;
+      const float* plane = A.tex + c * A.plane;
       __m256 cx = _mm256_setzero_ps(), cy = _mm256_setzero_ps();
       for (int r = 0; r < K; ++r) {
         __m256 rx = _mm256_setzero_ps(), rv = _mm256_setzero_ps();
@@ -631,7 +657,8 @@ DT_AVX2 void backward8(const Args<float>& A, const Group8<K>& g, const int64_t* 
     alignas(32) float gx[8], gy[8];
     _mm256_store_ps(gx, _mm256_mul_ps(sx, _mm256_set1_ps(static_cast<float>(A.W))));
     _mm256_store_ps(gy, _mm256_mul_ps(sy, _mm256_set1_ps(static_cast<float>(A.H))));
-    for (int j = 0; j < 8; ++j) guv[2 * p[j]] = gx[j], guv[2 * p[j] + 1] = gy[j];
+    for (int j = 0; j < g.cnt; ++j)
+      if (g.live >> j & 1) guv[2 * p[j]] = gx[j], guv[2 * p[j] + 1] = gy[j];
   }
   if (gt == nullptr) return;
   alignas(32) int32_t idx[K][K][8], in[K][K][8];
@@ -647,92 +674,73 @@ DT_AVX2 void backward8(const Args<float>& A, const Group8<K>& g, const int64_t* 
       const __m256 gr = _mm256_mul_ps(gc, g.ay.w[r]);
       for (int q = 0; q < K; ++q) _mm256_store_ps(share[r][q], _mm256_mul_ps(gr, g.ax.w[q]));
     }
-    float* tc = gt + tb + c * A.plane;
-    for (int j = 0; j < 8; ++j)
+    float* tc = gt + c * A.plane;
+    for (int j = 0; j < g.cnt; ++j) {
+      if (!(g.live >> j & 1)) continue;
       for (int r = 0; r < K; ++r)
         for (int q = 0; q < K; ++q)
           if (!kBorder || in[r][q][j]) tc[idx[r][q][j]] += share[r][q][j];
+    }
   }
 }
 
-// Prepares the block of groups of points idx[s ..] (up to full) for backward8 and prefetches the lines it
-// reads (guv) and writes (gt): gofs, the points' offsets in grad [B, C, M]; tb, their texture's offset; ok[i]:
-// group i is finite and on one texture. Returns the group count.
+// Prepares the block of groups of points idx[s, n) for backward8 and prefetches the lines it reads (guv) and
+// writes (gt): gofs, the points' offsets in grad [B, C, M]; each group's rows include its points' texture
+// offsets (b * C * plane). Returns the group count.
 template <int K, int CC>
-DT_AVX2 int prepare_points(const Args<float>& A, const int64_t* idx, int64_t s, int64_t full, const float* gt,
-                           const float* guv, Group8<K>* grp, __m256i* gofs, int64_t* tb, bool* ok) {
+DT_AVX2 int prepare_points(const Args<float>& A, const int64_t* idx, int64_t s, int64_t n, const float* gt,
+                           const float* guv, Group8<K>* grp, __m256i* gofs) {
   const int64_t C = CC > 0 ? CC : A.C, M = A.M;
-  const int m = static_cast<int>(std::min<int64_t>(kGroups, (full - s) / 8));
+  const int m = static_cast<int>(std::min<int64_t>(kGroups, (n - s + 7) / 8));
   for (int i = 0; i < m; ++i) {
-    const int64_t* p = idx + s + 8 * i;
+    const int64_t first = s + 8 * i;
+    const int cnt = static_cast<int>(std::min<int64_t>(8, n - first));
     alignas(32) float us[8], vs[8];
-    alignas(32) int32_t go[8];
-    const int64_t b0 = p[0] / M;
-    bool good = true;
+    alignas(32) int32_t go[8], to[8];
     for (int j = 0; j < 8; ++j) {
-      const int64_t b = p[j] / M;
-      good = good && (A.Bt == 1 || b == b0);
-      us[j] = A.uv[2 * p[j]];
-      vs[j] = A.uv[2 * p[j] + 1];
-      go[j] = static_cast<int32_t>(p[j] + b * (C - 1) * M);
+      const int64_t p = idx[first + std::min(j, cnt - 1)], b = p / M;  // a tail repeats its last point
+      us[j] = A.uv[2 * p];
+      vs[j] = A.uv[2 * p + 1];
+      go[j] = static_cast<int32_t>(p + b * (C - 1) * M);
+      to[j] = static_cast<int32_t>((A.Bt == 1 ? 0 : b) * C * A.plane);
     }
-    const __m256 u = _mm256_load_ps(us), v = _mm256_load_ps(vs);
-    ok[i] = good && finite8(u, v);
-    if (!ok[i]) continue;
+    __m256 u = _mm256_load_ps(us), v = _mm256_load_ps(vs);
+    grp[i].cnt = cnt;
+    grp[i].live = live_lanes(cnt, u, v);
     gofs[i] = _mm256_load_si256(reinterpret_cast<const __m256i*>(go));
-    tb[i] = (A.Bt == 1 ? 0 : b0) * C * A.plane;
     prepare8<K>(A, u, v, grp[i]);
-    if (guv != nullptr) prefetch8<K, false>(grp[i], A.tex + tb[i], C, A.plane);
-    if (gt != nullptr) prefetch8<K, true>(grp[i], gt + tb[i], C, A.plane);
+    const __m256i tb = _mm256_load_si256(reinterpret_cast<const __m256i*>(to));
+    for (int r = 0; r < K; ++r) grp[i].rows[r] = _mm256_add_epi32(grp[i].rows[r], tb);
+    if (guv != nullptr) prefetch8<K, false>(grp[i], A.tex, C, A.plane);
+    if (gt != nullptr) prefetch8<K, true>(grp[i], gt, C, A.plane);
   }
   return m;
 }
 
-// The backward of points idx[0, n) by blocks of groups of eight (see backward8); the groups it declines (a
-// non-finite coordinate, points on two textures) and the tail go through the scalar loop.
+// The backward of points idx[0, n) by blocks of groups of eight (see backward8; the last group partial).
 template <int KIND, int CC, bool kBorder>
 __attribute__((target("avx2,fma"))) void backward_avx2(const Args<float>& A, const int64_t* idx, int64_t n,
                                                        const float* grad, float* gt, float* guv) {
   constexpr int K = taps_of<KIND>();
-  const int64_t C = CC > 0 ? CC : A.C, M = A.M;
   // Two blocks in flight, as forward_range_avx2.
   Group8<K> grp[2][kGroups];
   __m256i gofs[2][kGroups];
-  int64_t tb[2][kGroups];
-  bool ok[2][kGroups];
-  Block<float, KIND> bl;
-  const int64_t full = n / 8 * 8;
-  int64_t s = 0;
-  int cur = 0, m = full > 0 ? prepare_points<K, CC>(A, idx, 0, full, gt, guv, grp[0], gofs[0], tb[0], ok[0]) : 0;
-  for (; s < full; cur ^= 1) {
+  int cur = 0, m = n > 0 ? prepare_points<K, CC>(A, idx, 0, n, gt, guv, grp[0], gofs[0]) : 0;
+  for (int64_t s = 0; s < n; cur ^= 1) {
     const int64_t next = s + 8 * m;
-    const int m2 = next < full ? prepare_points<K, CC>(A, idx, next, full, gt, guv, grp[cur ^ 1], gofs[cur ^ 1],
-                                                       tb[cur ^ 1], ok[cur ^ 1])
-                               : 0;
-    for (int i = 0; i < m; ++i, s += 8) {
-      if (ok[cur][i]) {
-        backward8<K, CC, kBorder>(A, grp[cur][i], idx + s, gofs[cur][i], tb[cur][i], grad, gt, guv);
-        continue;
-      }
-      bl.cnt = 8;
-      for (int j = 0; j < 8; ++j) bl.p[j] = idx[s + j];
-      backward_block<float, KIND, CC, kBorder>(bl, A, grad, gt, guv);
-    }
+    const int m2 = next < n ? prepare_points<K, CC>(A, idx, next, n, gt, guv, grp[cur ^ 1], gofs[cur ^ 1]) : 0;
+    for (int i = 0; i < m; ++i, s += 8) backward8<K, CC, kBorder>(A, grp[cur][i], idx + s, gofs[cur][i], grad, gt, guv);
     m = m2;
-  }
-  for (; s < n; s += kBlock) {
-    bl.cnt = static_cast<int>(std::min<int64_t>(kBlock, n - s));
-    for (int j = 0; j < bl.cnt; ++j) bl.p[j] = idx[s + j];
-    backward_block<float, KIND, CC, kBorder>(bl, A, grad, gt, guv);
   }
 }
 
 #endif
 
 // Whether a float32 read of this kind and texture goes through the eight-point path.
+// int32 texel offsets: the whole texture batch (the backward's groups mix textures through per-lane offsets).
 bool simd_read(int64_t kind, const torch::Tensor& texture) {
-  return simd_on() && kind != NEAREST &&
-         texture.scalar_type() == torch::kFloat32 && texture.size(2) * texture.size(3) < (int64_t(1) << 31);
+  return simd_on() && kind != NEAREST && texture.scalar_type() == torch::kFloat32 &&
+         texture.numel() < (int64_t(1) << 31);
 }
 
 template <typename scalar_t>
