@@ -104,9 +104,9 @@ void forward_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<Level
 // gather; the other groups, and every point with a non-finite coordinate,
 // go through the scalar loop. The coordinates are common.h's fold and
 // place in double (the same texels and fractions as the scalar loop, bit
-// for bit, where clamp and border keep x within [-2, n + 1]; past it both
-// taps read the same edge texel or constant either way), the texel
-// arithmetic is the scalar loop's float32 arithmetic in the same order.
+// for bit), the texel arithmetic is the scalar loop's float32 arithmetic
+// in the same order: a point gives the same bits on either path, so how
+// points fall into groups (the thread count) changes nothing.
 // ---------------------------------------------------------------------------
 #if DT_HAVE_AVX2
 
@@ -138,13 +138,11 @@ DT_AVX2 void place8(const double* u, int32_t n, int mode, Place8& a) {
       x = _mm256_sub_pd(one, _mm256_andnot_pd(_mm256_set1_pd(-0.0), s));
       a.slope[h] = _mm256_blendv_pd(one, _mm256_set1_pd(-1.0), _mm256_cmp_pd(f, _mm256_set1_pd(0.5), _CMP_GE_OQ));
     }
-    __m256d c = _mm256_sub_pd(_mm256_mul_pd(x, nd), _mm256_set1_pd(0.5));
-    // clamp / border: past [-2, n + 1] both taps are off the texture on that side already (the same reads; the
-    // scalar loop's capped floor gives a fraction of 0 there, as the clipped integral c does)
-    c = _mm256_min_pd(_mm256_max_pd(c, _mm256_set1_pd(-2.0)), _mm256_add_pd(nd, one));
-    const __m256d c0 = _mm256_floor_pd(c);
-    a.f[h] = _mm256_sub_pd(c, c0);
-    lo[h] = _mm256_cvttpd_epi32(c0);
+    const __m256d c = _mm256_sub_pd(_mm256_mul_pd(x, nd), _mm256_set1_pd(0.5)), c0 = _mm256_floor_pd(c);
+    a.f[h] = _mm256_sub_pd(c, c0);  // place's fraction: 0 from 2^52 on, where floor(c) = c
+    // The index clipped to [-2, n + 1] for int32 (clamp / border: past it both taps read the same edge texel or
+    // constant, as they do unclipped).
+    lo[h] = _mm256_cvttpd_epi32(_mm256_min_pd(_mm256_max_pd(c0, _mm256_set1_pd(-2.0)), _mm256_add_pd(nd, one)));
   }
   const __m256i i = _mm256_set_m128i(lo[1], lo[0]), ni = _mm256_set1_epi32(n), zero = _mm256_setzero_si256();
   const __m256i last = _mm256_set1_epi32(n - 1), all = _mm256_set1_epi32(-1);
