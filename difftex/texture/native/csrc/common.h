@@ -283,6 +283,14 @@ inline bool cpu_has_avx2() {
 inline bool cpu_has_avx2() { return false; }
 #endif
 
+// A prefetch of the line at addr (write: to be written), where the compiler has one: the kernels issue them
+// ahead of their gathers and scatters so that the cache misses overlap.
+#if defined(__GNUC__) || defined(__clang__)
+#define DT_PREFETCH(addr, write) __builtin_prefetch((addr), (write) ? 1 : 0, 3)
+#else
+#define DT_PREFETCH(addr, write) ((void)(addr))
+#endif
+
 inline std::atomic<bool>& simd_switch() {
   static std::atomic<bool> on{true};
   return on;

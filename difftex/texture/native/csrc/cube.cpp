@@ -528,11 +528,6 @@ std::vector<CubeLevel> level_tables(const std::vector<torch::Tensor>& levels, co
 // Texel rows are prefetched kAhead points ahead (the faces are larger than the caches; measured on the
 // CPU: about a third off the read), for the face gradients too in the backward.
 constexpr int64_t kAhead = 12;
-#if defined(__GNUC__) || defined(__clang__)
-#define CUBE_PREFETCH(addr, write) __builtin_prefetch((addr), (write) ? 1 : 0, 3)
-#else
-#define CUBE_PREFETCH(addr, write) ((void)(addr))
-#endif
 
 // P: const scalar_t* (the levels, read) or scalar_t* (their gradients, written).
 template <bool kWrite, typename P>
@@ -550,8 +545,8 @@ DT_INLINE void prefetch_point(const std::vector<CubeLevel>& L, const std::vector
     const int64_t x = clamp_i(u * n - 0.5, lv.n - 1), y = clamp_i(v * n - 0.5, lv.n - 1);
     const auto* p = planes[k] + f * lv.fstride + y * lv.n + x;
     for (int64_t c = 0; c < C; ++c) {
-      CUBE_PREFETCH(p + c * lv.plane, kWrite);
-      CUBE_PREFETCH(p + c * lv.plane + lv.n, kWrite);
+      DT_PREFETCH(p + c * lv.plane, kWrite);
+      DT_PREFETCH(p + c * lv.plane + lv.n, kWrite);
     }
   }
 }
@@ -626,8 +621,8 @@ void read_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<CubeLeve
         const CubeLevel& lv = L[lev[j][i]];
         const scalar_t* p = lp[lev[j][i]] + base[j][i];
         for (int64_t c = 0; c < C; ++c) {
-          CUBE_PREFETCH(p + c * lv.plane, false);
-          CUBE_PREFETCH(p + c * lv.plane + lv.n, false);
+          DT_PREFETCH(p + c * lv.plane, false);
+          DT_PREFETCH(p + c * lv.plane + lv.n, false);
         }
       }
     for (int i = 0; i < cnt; ++i) {

@@ -23,6 +23,7 @@
 // increasing id, then the bands, handed out one at a time to the threads,
 // each rasterized by one thread into its own rows (no races, the result
 // does not depend on the thread count or the order).
+#include "common.h"
 #include "kernels.h"
 
 #include <ATen/Parallel.h>
@@ -99,11 +100,6 @@ inline double pow2_scale(double m) {
 // loops ask for the corner records of the triangle kAhead places on, so
 // that their cache misses overlap instead of stalling one by one.
 constexpr int64_t kAhead = 8;
-#if defined(__GNUC__) || defined(__clang__)
-#define RASTER_PREFETCH(addr) __builtin_prefetch((addr), 0, 3)
-#else
-#define RASTER_PREFETCH(addr) ((void)(addr))
-#endif
 
 // The same for float (8 exponent bits, bias 127): raster_fragments' scale
 // of a triangle's corners in the input precision.
@@ -440,7 +436,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
           if (f + kAhead < hi) {
             const int64_t* fa = tc.faces + 3 * (f + kAhead);
             for (int i = 0; i < 3; ++i)
-              if (uint64_t(fa[i]) < nv) RASTER_PREFETCH(tc.vert + fa[i]);
+              if (uint64_t(fa[i]) < nv) DT_PREFETCH(tc.vert + fa[i], false);
           }
           const int64_t* fv = tc.faces + 3 * f;
           if ((uint64_t(fv[0]) >= nv) | (uint64_t(fv[1]) >= nv) | (uint64_t(fv[2]) >= nv)) {
@@ -554,7 +550,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
             if (li + kAhead < startl[band + 1]) {
               const Live& a = *listl[li + kAhead];
               if (!(a.f & kFloatBit))
-                for (int i = 0; i < 3; ++i) RASTER_PREFETCH(cxl.row(a.v[i]));
+                for (int i = 0; i < 3; ++i) DT_PREFETCH(cxl.row(a.v[i]), false);
             }
             const Live& lv = *listl[li];
             const int64_t f = lv.f & ~kFloatBit;
@@ -835,10 +831,10 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
           if (f < 0) continue;  // background costs one test (most of a deep peeling layer)
           // Small triangles change every pixel: their face rows 2 kAhead
           // pixels ahead, then (those rows in cache) their corners.
-          if (col + 2 * kAhead < W && pid[p + 2 * kAhead] >= 0) RASTER_PREFETCH(pf + 3 * pid[p + 2 * kAhead]);
+          if (col + 2 * kAhead < W && pid[p + 2 * kAhead] >= 0) DT_PREFETCH(pf + 3 * pid[p + 2 * kAhead], false);
           if (col + kAhead < W && pid[p + kAhead] >= 0 && pid[p + kAhead] != pid[p + kAhead - 1]) {
             const int64_t* fa = pf + 3 * pid[p + kAhead];
-            for (int i = 0; i < 3; ++i) RASTER_PREFETCH(pp + 4 * (bi * V + fa[i]));
+            for (int i = 0; i < 3; ++i) DT_PREFETCH(pp + 4 * (bi * V + fa[i]), false);
           }
           zero_run(p);
           bg = p + 1;

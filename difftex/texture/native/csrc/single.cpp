@@ -265,11 +265,6 @@ struct Block {
 // the loop waiting on memory latency (measured: 2-3x the time of the
 // same loop over a texture in L1). Issued for the whole block at once,
 // the misses overlap.
-#if defined(__GNUC__) || defined(__clang__)
-#define DT_PREFETCH(addr, write) __builtin_prefetch((addr), (write) ? 1 : 0, 3)
-#else
-#define DT_PREFETCH(addr, write) ((void)(addr))
-#endif
 
 template <typename scalar_t, int KIND, bool kWrite>
 DT_INLINE void prefetch_block(const Block<scalar_t, KIND>& bl, const scalar_t* tex, int64_t C, int64_t Bt,

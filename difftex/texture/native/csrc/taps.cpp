@@ -465,12 +465,6 @@ DT_INLINE int32_t tap_key(const ScaleBands& T, const std::vector<Level>& L, doub
 #if DT_HAVE_AVX2
 // The backward of eight points e[0..8) (one tap each, float32): as backward_point, eight at a time; false,
 // with nothing written, where a coordinate is not finite or the points read different levels.
-#if defined(__GNUC__) || defined(__clang__)
-#define DT_PREFETCH(addr, write) __builtin_prefetch((addr), (write) ? 1 : 0, 3)
-#else
-#define DT_PREFETCH(addr, write) ((void)(addr))
-#endif
-
 // Prefetches the texel lines that backward8 will read (levels, where it needs them) and write (level
 // gradients) for the eight points e[0..8), on the levels of the first point: issued two groups ahead, so that
 // the misses overlap the work on the groups before (measured: without it the backward waited on its first
