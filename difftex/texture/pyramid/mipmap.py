@@ -106,10 +106,10 @@ def step_adjoint(fine: Tensor | None, coarse: Tensor, fine_hw: tuple[int, int], 
             adj, = torch.autograd.grad(y, x, coarse, create_graph=torch.is_grad_enabled() and not inplace)
         return adj if fine is None else (fine.add_(adj) if inplace else fine + adj)
     kernel = native.kernel(coarse)
-    if kernel is not None and (inplace or not torch.is_grad_enabled()) and not (inplace and fine is not None):
-        # One pass that writes the fine gradient once (bit-identical; measured about 4x faster than the nearest
-        # upsampling below at 512^2 -> 1024^2 x 3). Not under create_graph: the kernel is not differentiable;
-        # nor to add into a given buffer in place, which the broadcast add below already does in one pass.
+    # One pass that writes the fine gradient once (bit-identical; measured 2.2-2.5x faster than the nearest
+    # upsampling below at 512^2 -> 1024^2 x 3). Not under create_graph (the kernel is not differentiable), nor
+    # to add into a given buffer in place, which the broadcast add below already does in one pass.
+    if kernel is not None and (fine is None if inplace else not torch.is_grad_enabled()):
         return kernel.box2_adjoint(coarse, fine)
     if fine is None:
         # Nearest 2x upsampling: 1.7x faster on CPU than a broadcast copy
