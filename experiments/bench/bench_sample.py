@@ -14,6 +14,9 @@ would slow the next call on a 2-core machine):
   texture is built once, channels-last, outside the timed calls; a timed
   call evaluates the points (and backpropagates to the texture tensor and
   the points). Skipped with a message where drjit is not installed.
+* **ours, channels_last**: the same texture given in torch's channels_last
+  memory format (Dr.Jit's interleaved layout), which the native kernel
+  reads in place.
 * **grid_sample**: difftex's own torch path (``difftex.backend("grid_sample")``,
   grid_sample with the folding / padding of every wrap mode).
 
@@ -182,29 +185,33 @@ def run(args) -> list[str]:
         peer = DrJit(tex, uv, threads)
     except ImportError:
         print("# drjit is not installed (pip install 'difftex[peers]'): Dr.Jit columns skipped")
-    rows = ["| filter | wrap | pass | ours ms | Dr.Jit ms | grid_sample ms | ours / Dr.Jit [IQR] | "
-            "ours / grid_sample [IQR] | ours GB/s | Dr.Jit GB/s |", "|---" * 10 + "|"]
+    rows = ["| filter | wrap | pass | ours ms | ours channels_last ms | Dr.Jit ms | grid_sample ms | "
+            "ours / Dr.Jit [IQR] | ours channels_last / Dr.Jit [IQR] | ours / grid_sample [IQR] | ours GB/s | "
+            "Dr.Jit GB/s |", "|---" * 12 + "|"]
+    tex_cl = tex.contiguous(memory_format=torch.channels_last)
     print("\n".join(rows), flush=True)
     for filt in args.filters:
         for wrap in args.wraps:
             for label, grad in (("forward", False), ("fwd+bwd", True)):
                 kw = dict(filter=filt, wrap=wrap)
-                fns = [ours_step(tex, uv, grad, "auto", **kw), ours_step(tex, uv, grad, "grid_sample", **kw)]
+                fns = [ours_step(tex, uv, grad, "auto", **kw), ours_step(tex, uv, grad, "grid_sample", **kw),
+                       ours_step(tex_cl, uv, grad, "auto", **kw)]
                 has_peer = peer is not None and wrap in DRJIT_WRAPS
                 if has_peer:
                     fns.append(peer.step(filt, wrap, grad))
                 times = time_interleaved(fns, args.reps, warmup=2, pause=args.pause)
-                ours, gs = times[0], times[1]
+                ours, gs, cl = times[0], times[1], times[2]
                 gb = bytes_moved(3, H, W, M, grad) / 1e6
                 rg = ratio_stats(ours, gs)
-                cells = [filt, wrap, label, f"{ours.median:.2f}"]
+                cells = [filt, wrap, label, f"{ours.median:.2f}", f"{cl.median:.2f}"]
                 if has_peer:
-                    rd = ratio_stats(ours, times[2])
-                    cells += [f"{times[2].median:.2f}", f"{gs.median:.2f}", f"{rd[0]:.2f} [{rd[1]:.2f}-{rd[2]:.2f}]"]
+                    rd, rc = ratio_stats(ours, times[3]), ratio_stats(cl, times[3])
+                    cells += [f"{times[3].median:.2f}", f"{gs.median:.2f}", f"{rd[0]:.2f} [{rd[1]:.2f}-{rd[2]:.2f}]",
+                              f"{rc[0]:.2f} [{rc[1]:.2f}-{rc[2]:.2f}]"]
                 else:
-                    cells += ["-", f"{gs.median:.2f}", "-"]
+                    cells += ["-", f"{gs.median:.2f}", "-", "-"]
                 cells += [f"{rg[0]:.2f} [{rg[1]:.2f}-{rg[2]:.2f}]", f"{gb / ours.median:.1f}",
-                          f"{gb / times[2].median:.1f}" if has_peer else "-"]
+                          f"{gb / times[3].median:.1f}" if has_peer else "-"]
                 rows.append("| " + " | ".join(cells) + " |")
                 print(rows[-1], flush=True)
     # Trilinear against our own bilinear, forward+backward, the same points.
