@@ -45,7 +45,10 @@ def sample(
             either, "ripmap" a Ripmap's levels (a Mipmap's base), the other
             mip filters a Ripmap's diagonal; the mip filters build the
             pyramid of a plain tensor on the fly (differentiably; all but
-            ewa only as deep as the points read).
+            ewa only as deep as the points read). On the CPU the
+            single-level filters read a ``torch.channels_last`` texture in
+            place, faster than a planar one (docs/bench_sample.md), and its
+            gradient comes back channels_last.
         uv: [B, Ho, Wo, 2]; (0, 0) is the top-left corner of texel (0, 0),
             (1, 1) the bottom-right corner of the last texel; u runs along the
             width, v along the rows (DESIGN.md). ``grid_sample`` with
