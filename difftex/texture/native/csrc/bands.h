@@ -65,21 +65,30 @@ inline ScaleBands scale_bands(int64_t h0) {
 }
 
 // Every point's band key (keys[e], -1: writes nothing) and which of the K
-// levels any point reads, in one threaded pass: key_of(e, read) returns
-// point e's key and sets read[k] = 1 for each level k it reads.
-template <typename KeyOf>
-std::vector<char> band_keys(int64_t M, int64_t K, std::vector<int32_t>& keys, KeyOf key_of) {
+// levels any point reads, in one threaded pass: key_range(lo, hi, keys, read)
+// sets keys[e] for e in [lo, hi) and read[k] = 1 for each level k a point
+// with a key reads.
+template <typename KeyRange>
+std::vector<char> band_key_ranges(int64_t M, int64_t K, std::vector<int32_t>& keys, KeyRange key_range) {
   keys.resize(M);
   const int64_t T = std::max<int64_t>(1, at::get_num_threads());
   std::vector<std::vector<char>> read(T, std::vector<char>(K, 0));
   at::parallel_for(0, M, 4096, [&](int64_t lo, int64_t hi) {
-    auto& rd = read[std::min<int64_t>(at::get_thread_num(), T - 1)];
-    for (int64_t e = lo; e < hi; ++e) keys[e] = key_of(e, rd);
+    key_range(lo, hi, keys.data(), read[std::min<int64_t>(at::get_thread_num(), T - 1)].data());
   });
   std::vector<char> any(K, 0);
   for (const auto& rd : read)
     for (int64_t k = 0; k < K; ++k) any[k] = any[k] || rd[k];
   return any;
+}
+
+// band_key_ranges one point at a time: key_of(e, read) returns point e's key
+// and sets read[k] = 1 for each level k it reads.
+template <typename KeyOf>
+std::vector<char> band_keys(int64_t M, int64_t K, std::vector<int32_t>& keys, KeyOf key_of) {
+  return band_key_ranges(M, K, keys, [&](int64_t lo, int64_t hi, int32_t* out, char* rd) {
+    for (int64_t e = lo; e < hi; ++e) out[e] = key_of(e, rd);
+  });
 }
 
 // The band of row r in [0, h) of a level cut into nb bands.

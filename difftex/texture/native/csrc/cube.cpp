@@ -840,7 +840,7 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_b
     std::vector<std::vector<scalar_t>> rings(K);
     if (need_levels) {
       bands = scale_bands(6 * L[0].P);
-      const std::vector<char> read = band_keys(M, K, keys, [&](int64_t e, std::vector<char>& rd) {
+      const std::vector<char> read = band_keys(M, K, keys, [&](int64_t e, char* rd) {
         const Reads r = cube_reads(level_at(pd, e), K, nearest, d_grad);
         const int32_t key = cube_key(bands, L, pf[e], puv[2 * e], puv[2 * e + 1], r);
         if (key >= 0)
