@@ -240,6 +240,7 @@ def test_the_eight_point_band_keys_give_the_scalar_keys(filter):
     tex = torch.rand(1, 3, 64, 48, generator=g)
     uv = torch.rand(1, 90, 90, 2, generator=g) * 3 - 1
     uv[0, :3, :, 1] *= 3e4
+    uv[0, 4, :9, 1] = 1e10  # past the four-point path's |v| < 2^31: the scalar key, inside a group
     uv[0, 5, 6, 1], uv[0, 7, 8, 0] = float("nan"), float("inf")
     dx = torch.randn(1, 90, 90, 2, generator=g) * torch.exp(torch.randn(1, 90, 90, 1, generator=g) * 2) * 0.02
     dy = torch.randn(1, 90, 90, 2, generator=g) * 0.01
