@@ -356,7 +356,42 @@ def summary_markdown(rows: list[dict], methods: list[str], meta: str) -> str:
         cell = {r["scene"]: r for r in rows if r["method"] == m}
         lines.append(f"| {m} | " + " | ".join(f"{cell[s]['psnr']:.1f} / {cell[s]['fwdbwd_ms']:.0f}"
                                             for s in scenes) + " |")
+    lines += ["", *auto_target_lines(rows)]
     return "\n".join(lines)
+
+
+# The difftex filters a per-pixel choice could draw on (issue 19, part 3).
+CHOICES = ("bilinear", "trilinear", "anisotropic-2", "anisotropic-4", "anisotropic-8", "anisotropic-16", "ripmap",
+           "sat")
+
+
+def auto_target_lines(rows: list[dict], ref: str = "anisotropic-16", within: float = 0.5) -> list[str]:
+    """Issue 19's target for "auto" (within ``within`` dB of ``ref`` on every scene, at most 0.7x its fwd+bwd
+    time in the mean over scenes) against two bounds from the same run: trilinear's time (one tap a pixel,
+    the cheapest mip filter), and per scene the cheapest single filter of CHOICES within ``within`` dB of
+    ``ref`` (a whole-scene oracle). Empty where the run lacks ``ref`` or "auto"."""
+    by = {(r["scene"], r["method"]): r for r in rows}
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    if not all((s, ref) in by and (s, "auto") in by for s in scenes):
+        return []
+    out = [f"Issue 19's target for auto: within {within} dB of {ref} on every scene, at most 0.7x its fwd+bwd "
+           f"time in the mean over scenes. Per scene, fwd+bwd time / {ref}'s (dB against {ref}):", "",
+           "| scene | auto | trilinear | cheapest filter within " + f"{within} dB |", "| --- | ---: | ---: | --- |"]
+    ratios: dict[str, list[float]] = {"auto": [], "trilinear": [], "oracle": []}
+    for s in scenes:
+        base = by[(s, ref)]
+        rel = lambda m: (by[(s, m)]["fwdbwd_ms"] / base["fwdbwd_ms"], by[(s, m)]["psnr"] - base["psnr"])  # noqa: E731
+        ok = [m for m in CHOICES if (s, m) in by and rel(m)[1] >= -within]
+        best = min(ok, key=lambda m: rel(m)[0])
+        cells = []
+        for key, m in (("auto", "auto"), ("trilinear", "trilinear"), ("oracle", best)):
+            t, d = rel(m)
+            ratios[key].append(t)
+            cells.append(f"{m} {t:.2f} ({d:+.1f})" if key == "oracle" else f"{t:.2f} ({d:+.1f})")
+        out.append(f"| {s} | " + " | ".join(cells) + " |")
+    out.append("| mean | " + " | ".join(f"{statistics.mean(ratios[k]):.2f}" for k in ("auto", "trilinear", "oracle"))
+               + " |")
+    return out
 
 
 # The part of docs/speed_vs_accuracy.md that --docs rewrites; the prose around it is kept.
