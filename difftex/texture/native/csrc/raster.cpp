@@ -34,11 +34,14 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <memory>
 #include <type_traits>
 #include <vector>
 
 #if DT_HAVE_AVX2
 #include <immintrin.h>
+#elif defined(__SSE2__)
+#include <emmintrin.h>
 #endif
 
 namespace difftex {
@@ -255,19 +258,45 @@ inline bool exact_covers_any(const Ctx& cx, const Exact& t) {
 // exact_plane (after exact_edges): the float64 NDC depth plane of the
 // unsnapped corners, anchored at corner 0; false where it is not finite.
 inline bool exact_plane(const Ctx& cx, const int32_t* fv, Exact& t) {
-  double nx[3], ny[3], nz[3];
+  double nx[3], ny[3], nz[3], p[3][4];
+  for (int i = 0; i < 3; ++i) cx.corner(fv[i], p[i]);
+#if defined(__SSE2__)
+  // The same quotients two at a time (a two-lane division costs a scalar
+  // one's time: 6 divisions where 11 were the bound of this setup).
   for (int i = 0; i < 3; ++i) {
-    double p[4];
-    cx.corner(fv[i], p);
-    nx[i] = p[0] / p[3];
-    ny[i] = p[1] / p[3];
-    nz[i] = p[2] / p[3];
+    double q[2];
+    _mm_storeu_pd(q, _mm_div_pd(_mm_loadu_pd(p[i]), _mm_set1_pd(p[i][3])));
+    nx[i] = q[0];
+    ny[i] = q[1];
   }
+  {
+    double q[2];
+    _mm_storeu_pd(q, _mm_div_pd(_mm_set_pd(p[1][2], p[0][2]), _mm_set_pd(p[1][3], p[0][3])));
+    nz[0] = q[0];
+    nz[1] = q[1];
+    nz[2] = p[2][2] / p[2][3];
+  }
+#else
+  for (int i = 0; i < 3; ++i) {
+    nx[i] = p[i][0] / p[i][3];
+    ny[i] = p[i][1] / p[i][3];
+    nz[i] = p[i][2] / p[i][3];
+  }
+#endif
   const double dx1 = nx[1] - nx[0], dy1 = ny[1] - ny[0], dz1 = nz[1] - nz[0];
   const double dx2 = nx[2] - nx[0], dy2 = ny[2] - ny[0], dz2 = nz[2] - nz[0];
   const double d = dx1 * dy2 - dx2 * dy1;
+#if defined(__SSE2__)
+  {
+    double q[2];
+    _mm_storeu_pd(q, _mm_div_pd(_mm_set_pd(dx1 * dz2 - dx2 * dz1, dz1 * dy2 - dz2 * dy1), _mm_set1_pd(d)));
+    t.zx = q[0];
+    t.zy = q[1];
+  }
+#else
   t.zx = (dz1 * dy2 - dz2 * dy1) / d;
   t.zy = (dx1 * dz2 - dx2 * dz1) / d;
+#endif
   if (!std::isfinite(t.zx) || !std::isfinite(t.zy)) return false;
   t.z0 = nz[0];
   t.x0 = nx[0];
@@ -337,6 +366,110 @@ bool setup_float(const Ctx& cx, int64_t f, Float& t) {
   }
   return t.c0 <= t.c1 && t.r0 <= t.r1;
 }
+
+// The vertex pass's record of vertex v: outcode (from the power-of-two
+// scaled clip coordinates) and, where w > 0 and the projection is inside
+// the guard band, the snapped position; a non-finite coordinate sets bad.
+inline void vertex_one(const Ctx& vc, int64_t v, double vsx, double vsy, bool snap, Vert* out,
+                       std::atomic<bool>& bad) {
+  double p[4];
+  vc.corner(v, p);
+  if (!(std::isfinite(p[0]) && std::isfinite(p[1]) && std::isfinite(p[2]) && std::isfinite(p[3])))
+    bad.store(true, std::memory_order_relaxed);
+  const double s = pow2_scale(max_abs4(p));
+  const double X = p[0] * s, Y = p[1] * s, Z = p[2] * s, Wc = p[3] * s;
+  uint8_t code = uint8_t((X > Wc) | ((X < -Wc) << 1) | ((Y > Wc) << 2) | ((Y < -Wc) << 3) | ((Z > Wc) << 4) |
+                         ((Z < -Wc) << 5));
+  Vert& o = out[v];
+  o.x = o.y = 0;
+  if (snap && p[3] > 0) {
+    const double fx = (p[0] / p[3]) * vsx, fy = (p[1] / p[3]) * vsy;
+    if (std::abs(fx) <= kGuard && std::abs(fy) <= kGuard) {
+      code |= kSnapped;
+      o.x = int32_t(round_even(fx));
+      o.y = int32_t(round_even(fy));
+    }
+  }
+  o.code = code;
+}
+
+#if DT_HAVE_AVX2
+// vertex_one for four vertices at a time (AVX2, the same float64
+// operations lane by lane, so the same records): vertices lo .. the last
+// whole group before hi; a group with a non-finite coordinate or a scale
+// outside pow2_scale's exponent-bit range takes vertex_one. Returns where
+// it stopped.
+__attribute__((target("avx2,fma"))) int64_t vertices_avx2(const Ctx& vc, int64_t lo, int64_t hi, double vsx,
+                                                          double vsy, bool snap, Vert* out, std::atomic<bool>& bad) {
+  const __m256d sign = _mm256_set1_pd(-0.0), inf = _mm256_set1_pd(INFINITY), guard = _mm256_set1_pd(kGuard);
+  const __m256d magic = _mm256_set1_pd(6755399441055744.0), zero = _mm256_setzero_pd();
+  const __m256d sxv = _mm256_set1_pd(vsx), syv = _mm256_set1_pd(vsy);
+  const __m256i exp_mask = _mm256_set1_epi64x(0x7ff), top = _mm256_set1_epi64x(2045);
+  int64_t v = lo;
+  for (; v + 4 <= hi; v += 4) {
+    __m256d r[4];  // vertex v + i's (x, y, z, w)
+    if (vc.f32) {
+      const float* q = static_cast<const float*>(vc.pos) + 4 * v;
+      for (int i = 0; i < 4; ++i) r[i] = _mm256_cvtps_pd(_mm_loadu_ps(q + 4 * i));
+    } else {
+      const double* q = static_cast<const double*>(vc.pos) + 4 * v;
+      for (int i = 0; i < 4; ++i) r[i] = _mm256_loadu_pd(q + 4 * i);
+    }
+    // Transpose: x, y, z, w of the four vertices.
+    const __m256d t0 = _mm256_unpacklo_pd(r[0], r[1]), t1 = _mm256_unpackhi_pd(r[0], r[1]);
+    const __m256d t2 = _mm256_unpacklo_pd(r[2], r[3]), t3 = _mm256_unpackhi_pd(r[2], r[3]);
+    const __m256d x = _mm256_permute2f128_pd(t0, t2, 0x20), y = _mm256_permute2f128_pd(t1, t3, 0x20);
+    const __m256d z = _mm256_permute2f128_pd(t0, t2, 0x31), w = _mm256_permute2f128_pd(t1, t3, 0x31);
+    const __m256d ax = _mm256_andnot_pd(sign, x), ay = _mm256_andnot_pd(sign, y);
+    const __m256d az = _mm256_andnot_pd(sign, z), aw = _mm256_andnot_pd(sign, w);
+    const __m256d fin = _mm256_and_pd(_mm256_and_pd(_mm256_cmp_pd(ax, inf, _CMP_LT_OQ), _mm256_cmp_pd(ay, inf, _CMP_LT_OQ)),
+                                      _mm256_and_pd(_mm256_cmp_pd(az, inf, _CMP_LT_OQ), _mm256_cmp_pd(aw, inf, _CMP_LT_OQ)));
+    // All finite: the max of the |coordinates| is std::max's.
+    const __m256d m = _mm256_max_pd(_mm256_max_pd(ax, ay), _mm256_max_pd(az, aw));
+    const __m256i be = _mm256_and_si256(_mm256_srli_epi64(_mm256_castpd_si256(m), 52), exp_mask);
+    const __m256i normal = _mm256_andnot_si256(_mm256_cmpeq_epi64(be, _mm256_setzero_si256()), _mm256_cmpgt_epi64(top, be));
+    if (_mm256_movemask_pd(_mm256_and_pd(fin, _mm256_castsi256_pd(normal))) != 0xf) {
+      for (int i = 0; i < 4; ++i) vertex_one(vc, v + i, vsx, vsy, snap, out, bad);
+      continue;
+    }
+    const __m256d s = _mm256_castsi256_pd(_mm256_slli_epi64(_mm256_sub_epi64(top, be), 52));
+    const __m256d X = _mm256_mul_pd(x, s), Y = _mm256_mul_pd(y, s), Z = _mm256_mul_pd(z, s), Wc = _mm256_mul_pd(w, s);
+    const __m256d nW = _mm256_xor_pd(Wc, sign);
+    __m256i code = _mm256_setzero_si256();
+    const __m256d tests[6] = {_mm256_cmp_pd(X, Wc, _CMP_GT_OQ), _mm256_cmp_pd(X, nW, _CMP_LT_OQ),
+                              _mm256_cmp_pd(Y, Wc, _CMP_GT_OQ), _mm256_cmp_pd(Y, nW, _CMP_LT_OQ),
+                              _mm256_cmp_pd(Z, Wc, _CMP_GT_OQ), _mm256_cmp_pd(Z, nW, _CMP_LT_OQ)};
+    for (int b = 0; b < 6; ++b)
+      code = _mm256_or_si256(code, _mm256_and_si256(_mm256_castpd_si256(tests[b]), _mm256_set1_epi64x(1 << b)));
+    __m128i qx = _mm_setzero_si128(), qy = _mm_setzero_si128();
+    if (snap) {
+      const __m256d fx = _mm256_mul_pd(_mm256_div_pd(x, w), sxv), fy = _mm256_mul_pd(_mm256_div_pd(y, w), syv);
+      const __m256d ok = _mm256_and_pd(_mm256_cmp_pd(w, zero, _CMP_GT_OQ),
+                                       _mm256_and_pd(_mm256_cmp_pd(_mm256_andnot_pd(sign, fx), guard, _CMP_LE_OQ),
+                                                     _mm256_cmp_pd(_mm256_andnot_pd(sign, fy), guard, _CMP_LE_OQ)));
+      code = _mm256_or_si256(code, _mm256_and_si256(_mm256_castpd_si256(ok), _mm256_set1_epi64x(kSnapped)));
+      // round_even, then the (integral) values as int32; zero where not snapped.
+      const __m256d rx = _mm256_and_pd(ok, _mm256_sub_pd(_mm256_add_pd(fx, magic), magic));
+      const __m256d ry = _mm256_and_pd(ok, _mm256_sub_pd(_mm256_add_pd(fy, magic), magic));
+      qx = _mm256_cvttpd_epi32(rx);
+      qy = _mm256_cvttpd_epi32(ry);
+    }
+    alignas(32) int32_t ox[4], oy[4];
+    alignas(32) int64_t oc[4];
+    _mm_store_si128(reinterpret_cast<__m128i*>(ox), qx);
+    _mm_store_si128(reinterpret_cast<__m128i*>(oy), qy);
+    _mm256_store_si256(reinterpret_cast<__m256i*>(oc), code);
+    for (int i = 0; i < 4; ++i) {
+      Vert& o = out[v + i];
+      o.x = ox[i];
+      o.y = oy[i];
+      o.code = uint8_t(oc[i]);
+    }
+  }
+  return v;
+}
+
+#endif
 
 #if DT_HAVE_AVX2
 // The triangle pass's eight-triangle filter (AVX2): of triangles fv[0..8)
@@ -529,7 +662,9 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
   for (int64_t c = 0; c < W; ++c) xs[c] = (double(c) + 0.5) * (2.0 / double(W)) - 1.0;
   for (int64_t r = 0; r < H; ++r) ys[r] = -((double(r) + 0.5) * (2.0 / double(H)) - 1.0);
   const int64_t nb = (H + kBand - 1) / kBand;
-  std::vector<Vert> vert(V);
+  // Not value-initialised (a 12-byte record a vertex, every one written by
+  // the vertex pass; zeroing a big mesh's first cost a tenth of that pass).
+  std::unique_ptr<Vert[]> vert(new Vert[V]);
   // Non-finite positions or out-of-range indices, found in passes that read
   // every one of them anyway (rasterize leaves its own checks of a big mesh
   // to these): the kernel then returns empty tensors, and the caller names
@@ -540,34 +675,18 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     const bool f32 = pos.scalar_type() == torch::kFloat32;
     const char* P = static_cast<const char*>(pos.data_ptr()) + bi * V * 4 * (f32 ? 4 : 8);
     // Vertices: the float path's scale and outcode, the exact path's snap.
-    const Ctx cx{P, f32, faces.data_ptr<int64_t>(), vert.data(), H, W, S, cull};
+    const Ctx cx{P, f32, faces.data_ptr<int64_t>(), vert.get(), H, W, S, cull};
     at::parallel_for(0, V, 4096, [&](int64_t lo, int64_t hi) {
       // Locals: the outcode is a byte store, which may alias anything.
       const Ctx vc = cx;
       const double vsx = sx, vsy = sy;
       const bool snap = S > 0;
-      Vert* const out = vert.data();
-      for (int64_t v = lo; v < hi; ++v) {
-        double p[4];
-        vc.corner(v, p);
-        if (!(std::isfinite(p[0]) && std::isfinite(p[1]) && std::isfinite(p[2]) && std::isfinite(p[3])))
-          bad.store(true, std::memory_order_relaxed);
-        const double s = pow2_scale(max_abs4(p));
-        const double X = p[0] * s, Y = p[1] * s, Z = p[2] * s, Wc = p[3] * s;
-        uint8_t code = uint8_t((X > Wc) | ((X < -Wc) << 1) | ((Y > Wc) << 2) | ((Y < -Wc) << 3) | ((Z > Wc) << 4) |
-                         ((Z < -Wc) << 5));
-        Vert& o = out[v];
-        o.x = o.y = 0;
-        if (snap && p[3] > 0) {
-          const double fx = (p[0] / p[3]) * vsx, fy = (p[1] / p[3]) * vsy;
-          if (std::abs(fx) <= kGuard && std::abs(fy) <= kGuard) {
-            code |= kSnapped;
-            o.x = int32_t(round_even(fx));
-            o.y = int32_t(round_even(fy));
-          }
-        }
-        o.code = code;
-      }
+      Vert* const out = vert.get();
+      int64_t v = lo;
+#if DT_HAVE_AVX2
+      if (simd_on()) v = vertices_avx2(vc, lo, hi, vsx, vsy, snap, out, bad);
+#endif
+      for (; v < hi; ++v) vertex_one(vc, v, vsx, vsy, snap, out, bad);
     });
     // Triangles, in chunks: which path, and the bands of rows they touch,
     // listed per chunk for the few that survive (the binning then never
