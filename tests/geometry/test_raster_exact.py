@@ -385,7 +385,15 @@ def _dense_scene(dtype):
     assert (near[:, 3] < 0).any() and (near[:, 3] > 0).any()
     F2 = F + len(V)
     degenerate = torch.cat((F[:64, [0, 0, 1]], F[64:128, [1, 2, 2]]))  # a repeated corner: zero area
-    return torch.cat((pos, near)).to(dtype), torch.cat((F, F2, degenerate)), H, W
+    # Vertices outside the vertex pass's exponent-bit scaling (zero; float64: subnormal, huge), among others
+    # that are not: the four-vertex groups holding them take the scalar record.
+    tiny = 1e-310 if dtype == torch.float64 else 0.0
+    huge = 6e307 if dtype == torch.float64 else 1e30  # >= 2^1022, also doubled
+    odd = torch.tensor([[0.0, 0.0, 0.0, 0.0], [tiny, -tiny, tiny, 2 * tiny], [0.1, 0.2, 0.5, 1.0],
+                        [huge, 0.5 * huge, 0.1 * huge, huge]], dtype=torch.float64)
+    base = 2 * len(V)
+    odd_faces = torch.tensor([[0, 2, 3], [1, 2, 3], [0, 1, 2]]) + base
+    return torch.cat((pos, near, odd)).to(dtype), torch.cat((F, F2, degenerate, odd_faces)), H, W
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -420,6 +428,16 @@ def test_eight_triangle_filter_matches_scalar_path(dtype, cull):
             kernel.set_simd(before)
     for a, b in zip(got[True], got[False]):
         assert torch.equal(a, b)
+    # A non-finite coordinate in a group of four is reported on both paths.
+    bad = pos.clone()
+    bad[1, 5, 2] = float("nan")
+    for simd in (True, False):
+        before = kernel.set_simd(simd)
+        try:
+            with use_backend("native"), pytest.raises(ValueError, match="pos.*non-finite"):
+                rasterize(bad, F, (H, W))
+        finally:
+            kernel.set_simd(before)
     with use_backend("reference"):
         ref, zref = _visibility(pos, F, H, W, cull)
     assert torch.equal(got[True][0], ref) and torch.equal(got[True][1], zref)
