@@ -61,6 +61,11 @@ struct Live {
   int32_t v[3], x[3], y[3];
 };
 constexpr int32_t kFloatBit = int32_t(1) << 30;
+// x[2] of a record whose coverage the triangle pass found (the eight-
+// triangle filter: a box of at most kProbe centres): x[0], y[0] the box's
+// first column and row, x[1] its columns, y[1] the covered centre slots
+// (bit s: slot s, as dropped8 numbers them); no snapped corner is there.
+constexpr int32_t kDirect = std::numeric_limits<int32_t>::min();
 
 // Per vertex, what the per-triangle pass over a big mesh reads, in one
 // 12-byte record (one cache line a corner: the corners of a dense mesh are
@@ -498,13 +503,14 @@ DT_AVX2 __m256d mask_half8(__m256i m, int half) { return _mm256_castsi256_pd(_mm
 // outcome: the scalar pass would list them), with their Live fields, so
 // that those are listed without the scalar tests.
 struct Group8 {
-  int32_t v[3][8], x[3][8], y[3][8], r0[8], r1[8];
-  unsigned direct;
+  int32_t v[3][8], x[3][8], y[3][8], c0[8], r0[8], r1[8], nc[8];
+  unsigned direct, cov[kProbe];  // cov[s]: the lanes whose triangle covers centre slot s
 };
 
 __attribute__((target("avx2,fma"))) unsigned dropped8(const int64_t* fv, const Vert* vert, int64_t nv, int64_t W,
                                                       int64_t H, int S, bool cull, Group8& g) {
   g.direct = 0;
+  for (int s = 0; s < int(kProbe); ++s) g.cov[s] = 0;
   const __m256i zero = _mm256_setzero_si256(), lim = _mm256_set1_epi64x(nv - 1);
   __m256i badv = zero;
   for (int i = 0; i < 6; ++i) {
@@ -548,6 +554,7 @@ __attribute__((target("avx2,fma"))) unsigned dropped8(const int64_t* fv, const V
   const __m256i one = _mm256_set1_epi32(1), five = _mm256_set1_epi32(int32_t(kProbe) + 1);
   const __m256i nc = _mm256_add_epi32(_mm256_sub_epi32(c1, c0), one), nr = _mm256_add_epi32(_mm256_sub_epi32(r1, r0), one);
   const __m256i cnt = _mm256_mullo_epi32(nc, nr), ext = _mm256_set1_epi32(1 << 20);
+  _mm256_storeu_si256(reinterpret_cast<__m256i*>(g.nc), nc);
   __m256i small = _mm256_and_si256(_mm256_cmpgt_epi32(five, nc), _mm256_cmpgt_epi32(five, nr));
   small = _mm256_and_si256(small, _mm256_cmpgt_epi32(five, cnt));
   small = _mm256_and_si256(small, _mm256_cmpgt_epi32(ext, _mm256_sub_epi32(xmax, xmin)));
@@ -562,6 +569,7 @@ __attribute__((target("avx2,fma"))) unsigned dropped8(const int64_t* fv, const V
   }
   _mm256_storeu_si256(reinterpret_cast<__m256i*>(g.r0), r0);
   _mm256_storeu_si256(reinterpret_cast<__m256i*>(g.r1), r1);
+  _mm256_storeu_si256(reinterpret_cast<__m256i*>(g.c0), c0);
   // Slots past the largest box of a small lane are skipped (most boxes of
   // a dense mesh hold one centre).
   int slots = 1;
@@ -612,6 +620,7 @@ __attribute__((target("avx2,fma"))) unsigned dropped8(const int64_t* fv, const V
         in = _mm256_and_pd(in, _mm256_cmp_pd(e, thr[i], _CMP_GE_OQ));
       }
       cov = _mm256_or_pd(cov, in);
+      g.cov[s] |= unsigned(_mm256_movemask_pd(in)) << (4 * half);
     }
     keep_small |= unsigned(_mm256_movemask_pd(_mm256_and_pd(ok, cov))) << (4 * half);
   }
@@ -741,10 +750,12 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
                 one(f + l);
                 continue;
               }
+              int32_t mask = 0;
+              for (int sl = 0; sl < int(kProbe); ++sl) mask |= int32_t(g.cov[sl] >> l & 1) << sl;
               out.push_back({int32_t(f + l), g.r0[l] / int32_t(kBand), g.r1[l] / int32_t(kBand),
                              {g.v[0][l], g.v[1][l], g.v[2][l]},
-                             {g.x[0][l], g.x[1][l], g.x[2][l]},
-                             {g.y[0][l], g.y[1][l], g.y[2][l]}});
+                             {g.c0[l], g.nc[l], kDirect},
+                             {g.r0[l], mask, 0}});
             }
           }
         }
@@ -855,6 +866,19 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
             }
             const Live& lv = *listl[li];
             const int64_t f = lv.f & ~kFloatBit;
+            if (lv.x[2] == kDirect) {
+              // Only the depth plane to set up, and the covered centres' depths.
+              if (!exact_plane(cxl, lv.v, e)) continue;
+              const int64_t nc = lv.x[1];
+              for (int sl = 0; sl < int(kProbe); ++sl) {
+                if (!(lv.y[1] >> sl & 1)) continue;
+                const int64_t r = lv.y[0] + (nc == 1 ? sl : nc == 2 ? sl >> 1 : 0);
+                const int64_t c = lv.x[0] + (nc == 1 ? 0 : nc == 2 ? sl & 1 : sl);
+                if (r < R0 || r >= R1) continue;
+                frag(r * Wl + c, (e.z0 + e.zx * (xsl[c] - e.x0)) + e.zy * (ysl[r] - e.y0), f);
+              }
+              continue;
+            }
             if (!(lv.f & kFloatBit)) {
               for (int i = 0; i < 3; ++i) {
                 e.x[i] = lv.x[i];
