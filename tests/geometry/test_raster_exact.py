@@ -428,6 +428,16 @@ def test_eight_triangle_filter_matches_scalar_path(dtype, cull):
             kernel.set_simd(before)
     for a, b in zip(got[True], got[False]):
         assert torch.equal(a, b)
+    # Chunks and vertex blocks are handed out to the threads as they come: the same bits on one or three.
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 3):
+            torch.set_num_threads(n)
+            with use_backend("native"):
+                ids_n, z_n = _visibility(pos, F, H, W, cull)
+            assert torch.equal(ids_n, got[True][0]) and torch.equal(z_n, got[True][1])
+    finally:
+        torch.set_num_threads(threads)
     # A non-finite coordinate in a group of four is reported on both paths.
     bad = pos.clone()
     bad[1, 5, 2] = float("nan")

@@ -685,17 +685,21 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     const char* P = static_cast<const char*>(pos.data_ptr()) + bi * V * 4 * (f32 ? 4 : 8);
     // Vertices: the float path's scale and outcode, the exact path's snap.
     const Ctx cx{P, f32, faces.data_ptr<int64_t>(), vert.get(), H, W, S, cull};
-    at::parallel_for(0, V, 4096, [&](int64_t lo, int64_t hi) {
+    constexpr int64_t kVertBlock = 16384;  // vertices an item of the vertex pass
+    dynamic_for((V + kVertBlock - 1) / kVertBlock, [&](auto&& next_block) {
       // Locals: the outcode is a byte store, which may alias anything.
       const Ctx vc = cx;
       const double vsx = sx, vsy = sy;
       const bool snap = S > 0;
       Vert* const out = vert.get();
-      int64_t v = lo;
+      for (int64_t blk; (blk = next_block()) >= 0;) {
+        const int64_t lo = blk * kVertBlock, hi = std::min(V, lo + kVertBlock);
+        int64_t v = lo;
 #if DT_HAVE_AVX2
-      if (simd_on()) v = vertices_avx2(vc, lo, hi, vsx, vsy, snap, out, bad);
+        if (simd_on()) v = vertices_avx2(vc, lo, hi, vsx, vsy, snap, out, bad);
 #endif
-      for (; v < hi; ++v) vertex_one(vc, v, vsx, vsy, snap, out, bad);
+        for (; v < hi; ++v) vertex_one(vc, v, vsx, vsy, snap, out, bad);
+      }
     });
     // Triangles, in chunks: which path, and the bands of rows they touch,
     // listed per chunk for the few that survive (the binning then never
@@ -707,12 +711,14 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     const bool simd = simd_on() && S > 0 && V < (int64_t(1) << 31) / 3;
     std::vector<int64_t> cnt(nch * nb, 0);
     std::vector<std::vector<Live>> live(nch);
-    at::parallel_for(0, nch, 1, [&](int64_t lo_ch, int64_t hi_ch) {
+    // Chunks handed out one at a time (as the bands are): on a machine
+    // shared with other work a static split waits for the slower thread.
+    dynamic_for(nch, [&](auto&& next_chunk) {
       const Ctx tc = cx;  // a local copy: the list writes could alias the captured one (reloaded per triangle)
       const uint64_t nv = uint64_t(V);
       Exact e;
       Float fl;
-      for (int64_t ch = lo_ch; ch < hi_ch; ++ch) {
+      for (int64_t ch; (ch = next_chunk()) >= 0;) {
         const int64_t lo = ch * chunk, hi = std::min(F, lo + chunk);
         std::vector<Live>& out = live[ch];
         out.clear();
