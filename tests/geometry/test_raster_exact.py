@@ -375,7 +375,8 @@ def test_kbuffer_layers_equal_layer_by_layer_peeling(cull):
 
 def _dense_scene(dtype):
     """Sub-pixel triangles (icosphere(5) at 40 x 52, half the corners on pixel centres: the fill rule decides),
-    a second sphere reaching past the image border and through the near plane, and degenerate faces."""
+    a second sphere reaching past the image border and through the near plane, and degenerate faces; and the
+    first sphere in full view (farther away) on its own."""
     H, W = 40, 52
     V, F = icosphere(5, dtype=torch.float64)
     gen = torch.Generator().manual_seed(11)
@@ -393,7 +394,8 @@ def _dense_scene(dtype):
                         [huge, 0.5 * huge, 0.1 * huge, huge]], dtype=torch.float64)
     base = 2 * len(V)
     odd_faces = torch.tensor([[0, 2, 3], [1, 2, 3], [0, 1, 2]]) + base
-    return torch.cat((pos, near, odd)).to(dtype), torch.cat((F, F2, degenerate, odd_faces)), H, W
+    inview = _snap_to_centres(camera.transform(V, _camera(gen, 4.5, 50.0, W / H)), H, W, 0.5, gen)
+    return torch.cat((pos, near, odd)).to(dtype), torch.cat((F, F2, degenerate, odd_faces)), H, W, (inview.to(dtype), F)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -410,7 +412,7 @@ def test_eight_triangle_filter_matches_scalar_path(dtype, cull):
     kernel = native.load()
     if kernel is None:
         pytest.skip("the native kernel is unavailable")
-    pos, F, H, W = _dense_scene(dtype)
+    pos, F, H, W, (sphere_pos, sphere_F) = _dense_scene(dtype)
     pos = torch.stack((pos, pos * 2.0))  # a batch of two (same NDC)
     got = {}
     for simd in (True, False):
@@ -438,6 +440,19 @@ def test_eight_triangle_filter_matches_scalar_path(dtype, cull):
             assert torch.equal(ids_n, got[True][0]) and torch.equal(z_n, got[True][1])
     finally:
         torch.set_num_threads(threads)
+    # The dense sphere alone is in full view: the filter then skips the outcodes (every vertex snapped, inside).
+    sphere_pos = torch.stack((sphere_pos, 2 * sphere_pos))
+    assert (sphere_pos[..., :3].abs() < sphere_pos[..., 3:]).all()
+    alone = []
+    for simd in (True, False):
+        before = kernel.set_simd(simd)
+        try:
+            with use_backend("native"):
+                alone.append(_visibility(sphere_pos, sphere_F, H, W, cull))
+        finally:
+            kernel.set_simd(before)
+    assert torch.equal(alone[0][0], alone[1][0]) and torch.equal(alone[0][1], alone[1][1])
+    assert (alone[0][0] >= 0).sum() > H * W // 5
     # A non-finite coordinate in a group of four is reported on both paths.
     bad = pos.clone()
     bad[1, 5, 2] = float("nan")
