@@ -725,9 +725,13 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     // scans the dead ones), with a count per band.
     const int64_t chunk = std::max<int64_t>(4096, (F + 63) / 64);
     const int64_t nch = std::max<int64_t>(1, (F + chunk - 1) / chunk);
-    // The eight-triangle filter: snapping on (S > 0), int32 gather offsets
+    // The eight-triangle filter: snapping on (S > 0), its int32 box
+    // arithmetic exact (pixel centres within 2^27 units, as
+    // geometry/raster.py _subpixel_bits chooses S), int32 gather offsets
     // (3 V < 2^31), and the switch the tests turn (kernels.h set_simd).
-    const bool simd = simd_on() && S > 0 && V < (int64_t(1) << 31) / 3, inside_all = all_in.load();
+    const bool simd = simd_on() && S > 0 && (std::max(H, W) << S) <= (int64_t(1) << 28) &&
+                      V < (int64_t(1) << 31) / 3,
+               inside_all = all_in.load();
     std::vector<int64_t> cnt(nch * nb, 0);
     std::vector<std::vector<Live>> live(nch);
     // Chunks handed out one at a time (as the bands are): on a machine
