@@ -712,8 +712,8 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
       for (int64_t blk; (blk = next_block()) >= 0;) {
         const int64_t lo = blk * kVertBlock, hi = std::min(V, lo + kVertBlock);
         int64_t v = lo;
-#if DT_HAVE_AVX2
         bool inside = true;
+#if DT_HAVE_AVX2
         if (simd_on()) v = vertices_avx2(vc, lo, hi, vsx, vsy, snap, out, bad, inside);
 #endif
         for (; v < hi; ++v) inside &= vertex_one(vc, v, vsx, vsy, snap, out, bad) == kSnapped;
@@ -732,6 +732,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
     const bool simd = simd_on() && S > 0 && (std::max(H, W) << S) <= (int64_t(1) << 28) &&
                       V < (int64_t(1) << 31) / 3,
                inside_all = all_in.load();
+    (void)simd, (void)inside_all;  // read only where the build has the AVX2 paths
     std::vector<int64_t> cnt(nch * nb, 0);
     std::vector<std::vector<Live>> live(nch);
     // Chunks handed out one at a time (as the bands are): on a machine
