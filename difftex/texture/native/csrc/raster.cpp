@@ -819,9 +819,9 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
       }
     }
     start[nb] = total;
-    std::vector<const Live*> list(total);
-    at::parallel_for(0, nch, 1, [&](int64_t lo, int64_t hi) {
-      for (int64_t ch = lo; ch < hi; ++ch)
+    std::unique_ptr<const Live*[]> list(new const Live*[total]);  // every entry written below: not zeroed first
+    dynamic_for(nch, [&](auto&& next_chunk) {
+      for (int64_t ch; (ch = next_chunk()) >= 0;)
         for (const Live& t : live[ch])
           for (int32_t b = t.band0; b <= t.band1; ++b) list[cnt[ch * nb + b]++] = &t;
     });
@@ -843,7 +843,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
         const bool countl = count, floorl = has_floor;
         const double *const xsl = xs.data(), *const ysl = ys.data(), *const bfzl = bfz;
         const int64_t *const startl = start.data(), *const bfil = bfi;
-        const Live* const* const listl = list.data();
+        const Live* const* const listl = list.get();
         double* const ozl = oz;
         int64_t *const oidl = oid, *const out_idl = out_id;
         const Ctx cxl = cx;
