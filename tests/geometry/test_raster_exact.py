@@ -367,3 +367,105 @@ def test_kbuffer_layers_equal_layer_by_layer_peeling(cull):
     # a duplicated face (id 1282 + i duplicates i) comes right behind its twin
     twin = (ref[0] >= 0) & (ref[0] < 30)
     assert twin.any() and torch.equal(ref[1][twin], ref[0][twin] + len(F) - 30)
+
+
+# --------------------------------------------------------------------------
+# the triangle pass's eight-triangle AVX2 filter against its scalar tests
+
+
+def _dense_scene(dtype):
+    """Sub-pixel triangles (icosphere(5) at 40 x 52, half the corners on pixel centres: the fill rule decides),
+    a second sphere reaching past the image border and through the near plane, and degenerate faces; and the
+    first sphere in full view (farther away) on its own."""
+    H, W = 40, 52
+    V, F = icosphere(5, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(11)
+    pos = _snap_to_centres(camera.transform(V, _camera(gen, 2.6, 50.0, W / H)), H, W, 0.5, gen)
+    proj = camera.perspective(50.0, W / H, 0.05, 50.0, degrees=True, dtype=torch.float64)
+    near = camera.transform(V * 1.2 + torch.tensor([0.6, 0.3, -1.0], dtype=torch.float64), proj)  # eye space
+    assert (near[:, 3] < 0).any() and (near[:, 3] > 0).any()
+    F2 = F + len(V)
+    degenerate = torch.cat((F[:64, [0, 0, 1]], F[64:128, [1, 2, 2]]))  # a repeated corner: zero area
+    # Vertices outside the vertex pass's exponent-bit scaling (zero; float64: subnormal, huge), among others
+    # that are not: the four-vertex groups holding them take the scalar record.
+    tiny = 1e-310 if dtype == torch.float64 else 0.0
+    huge = 6e307 if dtype == torch.float64 else 1e30  # >= 2^1022, also doubled
+    odd = torch.tensor([[0.0, 0.0, 0.0, 0.0], [tiny, -tiny, tiny, 2 * tiny], [0.1, 0.2, 0.5, 1.0],
+                        [huge, 0.5 * huge, 0.1 * huge, huge]], dtype=torch.float64)
+    base = 2 * len(V)
+    odd_faces = torch.tensor([[0, 2, 3], [1, 2, 3], [0, 1, 2]]) + base
+    inview = _snap_to_centres(camera.transform(V, _camera(gen, 4.5, 50.0, W / H)), H, W, 0.5, gen)
+    return torch.cat((pos, near, odd)).to(dtype), torch.cat((F, F2, degenerate, odd_faces)), H, W, (inview.to(dtype), F)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("cull", [False, True])
+def test_eight_triangle_filter_matches_scalar_path(dtype, cull):
+    # raster.cpp dropped8 drops or lists most triangles of a dense mesh on
+    # its own (outcodes, empty boxes, small boxes whose centres the exact
+    # edge functions miss); both paths must give the same bits, in every
+    # mode of the kernel (z-buffer, floor, count, k-buffer), and the torch
+    # path's ids.
+    from difftex.geometry.raster import _subpixel_bits, _visibility
+    from difftex.texture import native
+
+    kernel = native.load()
+    if kernel is None:
+        pytest.skip("the native kernel is unavailable")
+    pos, F, H, W, (sphere_pos, sphere_F) = _dense_scene(dtype)
+    pos = torch.stack((pos, pos * 2.0))  # a batch of two (same NDC)
+    got = {}
+    for simd in (True, False):
+        before = kernel.set_simd(simd)
+        try:
+            with use_backend("native"):
+                ids, z = _visibility(pos, F, H, W, cull)
+                floor = (z, torch.where(ids.reshape(-1) >= 0, ids.reshape(-1), torch.iinfo(torch.int64).max))
+                ids2, z2 = _visibility(pos, F, H, W, cull, floor)
+                count = _coverage_count(pos, F, (H, W), cull_backfaces=cull)
+                layers, zk = kernel.raster(pos, F, H, W, cull, _subpixel_bits(H, W), torch.empty(0, dtype=torch.float64),
+                                           torch.empty(0, dtype=torch.int64), layers=3)
+            got[simd] = (ids, z, ids2, z2, count, layers, zk)
+        finally:
+            kernel.set_simd(before)
+    for a, b in zip(got[True], got[False]):
+        assert torch.equal(a, b)
+    # Chunks and vertex blocks are handed out to the threads as they come: the same bits on one or three.
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 3):
+            torch.set_num_threads(n)
+            with use_backend("native"):
+                ids_n, z_n = _visibility(pos, F, H, W, cull)
+            assert torch.equal(ids_n, got[True][0]) and torch.equal(z_n, got[True][1])
+    finally:
+        torch.set_num_threads(threads)
+    # The dense sphere alone is in full view: the filter then skips the outcodes (every vertex snapped, inside).
+    sphere_pos = torch.stack((sphere_pos, 2 * sphere_pos))
+    assert (sphere_pos[..., :3].abs() < sphere_pos[..., 3:]).all()
+    alone = []
+    for simd in (True, False):
+        before = kernel.set_simd(simd)
+        try:
+            with use_backend("native"):
+                alone.append(_visibility(sphere_pos, sphere_F, H, W, cull))
+        finally:
+            kernel.set_simd(before)
+    assert torch.equal(alone[0][0], alone[1][0]) and torch.equal(alone[0][1], alone[1][1])
+    assert (alone[0][0] >= 0).sum() > H * W // 5
+    # A non-finite coordinate in a group of four is reported on both paths.
+    bad = pos.clone()
+    bad[1, 5, 2] = float("nan")
+    for simd in (True, False):
+        before = kernel.set_simd(simd)
+        try:
+            with use_backend("native"), pytest.raises(ValueError, match="pos.*non-finite"):
+                rasterize(bad, F, (H, W))
+        finally:
+            kernel.set_simd(before)
+    with use_backend("reference"):
+        ref, zref = _visibility(pos, F, H, W, cull)
+    assert torch.equal(got[True][0], ref) and torch.equal(got[True][1], zref)
+    ids, count = got[True][0], got[True][4]
+    assert (ids[0] >= 0).sum() > H * W // 3 and (count >= 2).sum() > H * W // 4  # the spheres cover much, in layers
+    assert ((ids >= 0) & (ids < 20480)).sum() > H * W // 3  # the dense sphere (sub-pixel triangles) shows

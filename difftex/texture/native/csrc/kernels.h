@@ -101,7 +101,8 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
 // tap a point) use the eight-point AVX2 paths, on by default where the CPU
 // has them: set_simd sets it and returns the previous setting (the tests
 // run both paths against the reference); simd_available says whether this
-// CPU has them.
+// CPU has them. The same switch turns raster.cpp's four-vertex and eight-
+// triangle AVX2 passes (same bits as its scalar loops, tested both ways).
 bool set_simd(bool enabled);
 bool simd_available();
 
