@@ -56,6 +56,12 @@ with 0 auto equals anisotropic wherever the minor axis is at least half a texel.
   accuracy, so auto takes 0-3 % fewer taps and its time is anisotropic's within this machine's noise
   (forward+backward in experiments/studies/speed_vs_accuracy.py's runs: median 1.00-1.02x; single scenes 0.90-1.36x, the outliers on different scenes from run to run). It saves where footprints are magnified below half a texel (one read instead of anisotropic's two) or round:
   on a sphere magnified 4x (not in the table) auto reads half of anisotropic's taps, 56.7 vs 64.3 dB.
+* Issue 19's target (0.7x anisotropic-16's forward+backward in the mean over these scenes, within 0.5 dB
+  on each) is out of reach of any choice among the filters difftex has: in one run
+  (docs/speed_vs_accuracy.md, its last table) trilinear alone, one tap a pixel, is 0.59x and 14-24 dB short
+  on the grazing planes, and the cheapest single filter within 0.5 dB, picked per scene with hindsight
+  (bilinear, trilinear, anisotropic 2-16, ripmap or sat), averages 0.87x. A per-pixel mix pays every
+  filter's per-call work (pyramid, table) on top.
 * What the first version gave away: with tolerance 0.25 it took 7-10 % fewer taps on grazing planes but
   fell 2.1 dB under anisotropic 16 on the closed-form checker plane at 5 degrees (1.2 dB on the spot
   plane); with a one-texel spacing floor it read plain bilinear on a sphere magnified 2x, 5.3 dB under
