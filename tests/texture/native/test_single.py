@@ -10,9 +10,10 @@ than that check it against the reference, and that one and two threads
 give bit-identical gradients.
 
 float32 bilinear / bicubic reads take an eight-point AVX2 path where the
-CPU has it (``set_simd``); the float32 tests run on it and on the
-scalar loop (the ``path`` fixture), and one test holds the two to each
-other on the points the eight-point path treats specially (group tails,
+CPU has it (``set_simd``), and their forward a sixteen-point AVX-512 one
+where it has that (``set_wide``); the float32 tests run on each and on the
+scalar loop (the ``path`` fixture), and one test holds the three to each
+other on the points the vector paths treat specially (group tails,
 non-finite points inside a group, huge and edge coordinates). A
 channels_last texture is read in place and gives the planar read's bits.
 """
@@ -34,17 +35,30 @@ pytestmark = pytest.mark.skipif(not BUILT, reason="native kernel not built here 
 WRAPS = ("repeat", "clamp", "mirror", "border")
 TOL = {f32: 1e-5, f64: 1e-12}
 SIMD = BUILT and native.load().simd_available()
+WIDE = BUILT and native.load().wide_available()
 
 
-@pytest.fixture(params=["simd", "scalar"])
+def _set_path(kernel, name: str) -> tuple[bool, bool]:
+    """Selects the sixteen-point ("wide"), eight-point ("simd") or scalar path; returns the previous switches."""
+    return kernel.set_simd(name != "scalar"), kernel.set_wide(name == "wide")
+
+
+def _restore_path(kernel, before: tuple[bool, bool]) -> None:
+    kernel.set_simd(before[0])
+    kernel.set_wide(before[1])
+
+
+@pytest.fixture(params=["wide", "simd", "scalar"])
 def path(request):
-    """Runs a test on the eight-point AVX2 path (where the CPU has it) and on the scalar loop."""
+    """Runs a test on the AVX-512 and AVX2 paths (where the CPU has them) and on the scalar loop."""
     if request.param == "simd" and not SIMD:
         pytest.skip("this CPU has no AVX2 / FMA: the scalar loop serves")
+    if request.param == "wide" and not WIDE:
+        pytest.skip("this CPU has no AVX-512: the eight-point path serves")
     kernel = native.load()
-    before = kernel.set_simd(request.param == "simd")
+    before = _set_path(kernel, request.param)
     yield request.param
-    kernel.set_simd(before)
+    _restore_path(kernel, before)
 
 
 def _inputs(dtype, B=1, Bt=1, C=3, H=7, W=10, Ho=9, Wo=11, seed=0, spread=4.0):
@@ -155,10 +169,10 @@ def test_huge_and_far_uv_read_as_the_reference(path):
 
 @pytest.mark.skipif(not SIMD, reason="this CPU has no AVX2 / FMA")
 @pytest.mark.parametrize("filter", ["bilinear", "bicubic"])
-def test_the_eight_point_path_reads_as_the_scalar_loop_and_the_reference(filter):
-    # 3 x 45 points: groups of eight and a tail of five per batch entry, a NaN and an inf inside groups (lanes
-    # that write NaN, or nothing in the backward), coordinates on texel centres and edges, just below 0 and 1,
-    # huge.
+def test_the_vector_paths_read_as_the_scalar_loop_and_the_reference(filter):
+    # 3 x 45 points: groups of eight and a tail of five per batch entry (of sixteen and thirteen on the
+    # sixteen-point forward), a NaN and an inf inside groups (lanes that write NaN, or nothing in the
+    # backward), coordinates on texel centres and edges, just below 0 and 1, huge.
     tex, uv = _inputs(f32, B=3, Bt=3, C=5, H=9, W=6, Ho=5, Wo=9, seed=11)
     special = torch.tensor([[0.5 / 6, 0.5 / 9], [1 / 6, 1 / 9], [-1e-9, 1 - 1e-7], [1e30, -1e30], [-1.0, 2.0],
                             [3e7 + 0.25, -5e6 - 0.75], [-2.0 - 1 / 6, 3.5], [1e-30, -1e-30]])
@@ -166,24 +180,32 @@ def test_the_eight_point_path_reads_as_the_scalar_loop_and_the_reference(filter)
     uv[0, 2, 3, 0] = float("nan")
     uv[2, 4, 1, 1] = float("inf")
     kernel = native.load()
+    paths = ("wide", "simd", "scalar") if WIDE else ("simd", "scalar")
     for wrap in itertools.product(WRAPS, WRAPS):
         got = {}
-        for simd in (True, False):
-            before = kernel.set_simd(simd)
+        for name in paths:
+            before = _set_path(kernel, name)
             try:
-                got[simd] = _read("native", tex, uv, filter, wrap)
+                got[name] = _read("native", tex, uv, filter, wrap)
             finally:
-                kernel.set_simd(before)
+                _restore_path(kernel, before)
         ref = list(_read("reference", tex, uv, filter, wrap))
         ok = torch.isfinite(uv).all(-1, keepdim=True)
         ref[2] = torch.where(ok, ref[2], 0.0)  # the reference's uv gradient is NaN there, the kernel's 0
-        for name, a, b, r in zip(("values", "texture gradient", "uv gradient"), got[True], got[False], ref):
+        for i, (name, r) in enumerate(zip(("values", "texture gradient", "uv gradient"), ref)):
+            a, b = got["simd"][i], got["scalar"][i]
             s = max(1.0, r.abs().max().item())
             msg = lambda m: f"{wrap} {name}: {m}"  # noqa: E731
             torch.testing.assert_close(a, r, atol=1e-5 * s, rtol=1e-5, equal_nan=True, msg=msg)
             torch.testing.assert_close(a, b, atol=1e-5 * s, rtol=1e-5, equal_nan=True, msg=msg)
-        assert torch.isnan(got[True][0][0, :, 2, 3]).all() and torch.isnan(got[True][0][2, :, 4, 1]).all()
-        assert torch.isfinite(got[True][0][0, :, 2, 2]).all() and torch.isfinite(got[True][0][0, :, 2, 4]).all()
+            if WIDE:  # the sixteen-point forward does the eight-point arithmetic in each lane: the same bits
+                w = got["wide"][i]
+                assert torch.equal(w.nan_to_num(7.0), a.nan_to_num(7.0)) and torch.equal(w.isnan(), a.isnan()), \
+                    msg("the sixteen- and eight-point paths differ")
+        for name in paths:
+            out = got[name][0]
+            assert torch.isnan(out[0, :, 2, 3]).all() and torch.isnan(out[2, :, 4, 1]).all(), name
+            assert torch.isfinite(out[0, :, 2, 2]).all() and torch.isfinite(out[0, :, 2, 4]).all(), name
 
 
 @pytest.mark.skipif(not SIMD, reason="this CPU has no AVX2 / FMA")

@@ -298,4 +298,22 @@ inline std::atomic<bool>& simd_switch() {
 
 inline bool simd_on() { return DT_HAVE_AVX2 && cpu_has_avx2() && simd_switch().load(); }
 
+// The sixteen-point AVX-512 forward of single.cpp (AVX512F and AVX512DQ, checked once at run time), on
+// where the CPU has it and simd_on(); set_wide turns it off, so that the tests run the eight-point path too.
+#if DT_HAVE_AVX2
+inline bool cpu_has_avx512() {
+  static const bool has = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq");
+  return has;
+}
+#else
+inline bool cpu_has_avx512() { return false; }
+#endif
+
+inline std::atomic<bool>& wide_switch() {
+  static std::atomic<bool> on{true};
+  return on;
+}
+
+inline bool wide_on() { return simd_on() && cpu_has_avx512() && wide_switch().load(); }
+
 }  // namespace difftex

@@ -105,5 +105,12 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
 // triangle AVX2 passes (same bits as its scalar loops, tested both ways).
 bool set_simd(bool enabled);
 bool simd_available();
+// Whether single.cpp's float32 bilinear / bicubic forward reads sixteen
+// points at a time (AVX-512; same bits as the eight-point path), on by
+// default where the CPU has AVX512F / AVX512DQ and set_simd is on: set_wide
+// sets it and returns the previous setting; wide_available says whether
+// this CPU has it.
+bool set_wide(bool enabled);
+bool wide_available();
 
 }  // namespace difftex

@@ -112,6 +112,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("set_simd", &set_simd, "use the eight-point AVX2 paths for float32 reads (default on); returns the previous setting",
         py::arg("enabled"));
   m.def("simd_available", &simd_available, "whether this CPU runs the eight-point AVX2 paths");
+  m.def("set_wide", &set_wide, "read float32 bilinear / bicubic forwards sixteen points at a time (AVX-512; default "
+        "on where set_simd is); returns the previous setting", py::arg("enabled"));
+  m.def("wide_available", &wide_available, "whether this CPU runs the sixteen-point AVX-512 forward");
   py::dict kinds;
   kinds["nearest"] = 0;
   kinds["linear"] = 1;

@@ -596,6 +596,9 @@ DT_AVX2 void forward8(const Args<float>& A, const Group8<K>& g, const float* tex
 }
 
 constexpr int kGroups = kBlock / 8;  // groups of a block
+// How far ahead of its group the uv stream is prefetched, in points: the hardware prefetcher alone left the
+// forward waiting on it (measured: 5-7% of the forward, 1024^2 RGB texture, 512^2 points, 2 threads).
+constexpr int64_t kUvLead = 4 * kBlock;
 
 // Prepares the block of groups of points from q (up to end, a batch entry's points on texture tex) and
 // prefetches their lines. Returns the group count.
@@ -606,6 +609,7 @@ DT_AVX2 int prepare_block(const Args<float>& A, const float* tex, int64_t C, int
     const int64_t first = q + 8 * i;
     __m256 u, v;
     grp[i].cnt = static_cast<int>(std::min<int64_t>(8, end - first));
+    if (first + kUvLead < end) DT_PREFETCH(A.uv + 2 * (first + kUvLead), false);
     grp[i].live = load8(A.uv + 2 * first, grp[i].cnt, u, v);
     prepare8<K>(A, u, v, grp[i]);
     prefetch8<K, false>(grp[i], tex, A);
@@ -633,6 +637,200 @@ __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t 
       const int64_t next = q + 8 * n;
       const int m = next < end ? prepare_block<K>(A, tex, C, next, end, grp[cur ^ 1]) : 0;
       for (int i = 0; i < n; ++i, q += 8) forward8<K, CC, kBorder>(A, grp[cur][i], tex, o + q, M);
+      n = m;
+    }
+    p = end;
+  }
+}
+
+// ---------------------------------------------------------------------------
+// The float32 bilinear / bicubic forward sixteen points at a time (AVX-512,
+// where the CPU has AVX512F and AVX512DQ, checked at run time; set_wide).
+// The same arithmetic as the eight-point path above, operation for
+// operation in each lane, so both give the same bits, with half the
+// instructions a point for the taps, the weights and the blend. Measured on
+// a 1024^2 RGB texture, 512^2 points, 2 threads, in rounds with the eight-
+// point path: 0.77-0.80x its time for bilinear (channels_last and planar),
+// 0.79-0.89x for bicubic. The backward stays on the eight-point path: its
+// scatter adds one point after another anyway.
+// ---------------------------------------------------------------------------
+#define DT_AVX512 __attribute__((target("avx512f,avx512dq,avx2,fma"), always_inline)) inline
+
+template <int K>
+struct Axis16 {
+  __m512i i[K];
+  __mmask16 in[K];
+  __m512 w[K];
+};
+
+DT_AVX512 __m512 near16(__m512 s) {
+  const __m512 p = _mm512_sub_ps(_mm512_mul_ps(_mm512_set1_ps(kA + 2), s), _mm512_set1_ps(kA + 3));
+  return _mm512_add_ps(_mm512_mul_ps(_mm512_mul_ps(p, s), s), _mm512_set1_ps(1.0f));
+}
+DT_AVX512 __m512 far16(__m512 s) {
+  __m512 p = _mm512_sub_ps(_mm512_mul_ps(_mm512_set1_ps(kA), s), _mm512_set1_ps(5 * kA));
+  p = _mm512_add_ps(_mm512_mul_ps(p, s), _mm512_set1_ps(8 * kA));
+  return _mm512_sub_ps(_mm512_mul_ps(p, s), _mm512_set1_ps(4 * kA));
+}
+
+template <int K>
+DT_AVX512 void axis16(__m512 u, int32_t n, int mode, Axis16<K>& a) {
+  const __m512 one = _mm512_set1_ps(1.0f), half = _mm512_set1_ps(0.5f), nf = _mm512_set1_ps(static_cast<float>(n));
+  constexpr int kFloor = _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC;
+  if (mode == REPEAT || mode == MIRROR) {
+    const __m512 p = _mm512_set1_ps(mode == REPEAT ? 1.0f : 2.0f), inv = _mm512_set1_ps(mode == REPEAT ? 1.0f : 0.5f);
+    const __m512 r = _mm512_sub_ps(u, _mm512_mul_ps(p, _mm512_roundscale_ps(_mm512_mul_ps(u, inv), kFloor)));
+    u = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(_mm512_abs_ps(u), p, _CMP_GE_OQ), u, r);
+  }
+  __m512 x = _mm512_sub_ps(_mm512_mul_ps(u, nf), half);
+  if (mode == CLAMP || mode == BORDER)
+    x = _mm512_min_ps(_mm512_max_ps(x, _mm512_set1_ps(-3.0f)), _mm512_add_ps(nf, _mm512_set1_ps(2.0f)));
+  const __m512 x0 = _mm512_roundscale_ps(x, kFloor), t = _mm512_sub_ps(x, x0);
+  const __m512i i = _mm512_cvttps_epi32(x0), ni = _mm512_set1_epi32(n), zero = _mm512_setzero_si512();
+  const __m512i last = _mm512_set1_epi32(n - 1);
+  for (int q = 0; q < K; ++q) {
+    __m512i r = _mm512_add_epi32(i, _mm512_set1_epi32(q - (K == 4 ? 1 : 0)));
+    __mmask16 in = 0xFFFF;
+    const __mmask16 below = _mm512_cmpgt_epi32_mask(zero, r);
+    if (mode == REPEAT || mode == MIRROR) {
+      const __m512i P = mode == REPEAT ? ni : _mm512_add_epi32(ni, ni);
+      r = _mm512_mask_add_epi32(r, below, r, P);
+      r = _mm512_mask_add_epi32(r, _mm512_cmpgt_epi32_mask(zero, r), r, P);
+      r = _mm512_mask_sub_epi32(r, _mm512_cmpge_epi32_mask(r, P), r, P);
+      if (mode == MIRROR)
+        r = _mm512_mask_blend_epi32(_mm512_cmpgt_epi32_mask(ni, r), _mm512_sub_epi32(_mm512_set1_epi32(2 * n - 1), r), r);
+    } else if (mode == BORDER) {
+      in = static_cast<__mmask16>(~(below | _mm512_cmpgt_epi32_mask(r, last)));
+    }
+    a.i[q] = _mm512_min_epi32(_mm512_max_epi32(r, zero), last);
+    a.in[q] = in;
+  }
+  if constexpr (K == 2) {
+    a.w[0] = _mm512_sub_ps(one, t); a.w[1] = t;
+  } else {
+    const __m512 t1 = _mm512_add_ps(t, one), s1 = _mm512_sub_ps(one, t), s2 = _mm512_sub_ps(_mm512_set1_ps(2.0f), t);
+    a.w[0] = far16(t1); a.w[1] = near16(t); a.w[2] = near16(s1); a.w[3] = far16(s2);
+  }
+}
+
+template <int K>
+struct Group16 {
+  Axis16<K> ax, ay;
+  __m512i rows[K], cols[K];
+  int cnt;
+  __mmask16 live;
+};
+
+// Sixteen points' (u, v) from interleaved uv (cnt < 16: the first cnt); the live lanes (finite, below cnt)
+// as live_lanes: the others read (0.5, 0.5) and write nothing.
+DT_AVX512 __mmask16 load16(const float* uv, int cnt, __m512& u, __m512& v) {
+  const __mmask16 lo = static_cast<__mmask16>(cnt >= 8 ? 0xFFFF : (1u << (2 * cnt)) - 1);
+  const __mmask16 hi = static_cast<__mmask16>(cnt >= 16 ? 0xFFFF : cnt <= 8 ? 0 : (1u << (2 * (cnt - 8))) - 1);
+  const __m512 a = _mm512_maskz_loadu_ps(lo, uv), b = _mm512_maskz_loadu_ps(hi, uv + 16);
+  const __m512i ev = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
+  u = _mm512_permutex2var_ps(a, ev, b);
+  v = _mm512_permutex2var_ps(a, _mm512_add_epi32(ev, _mm512_set1_epi32(1)), b);
+  const __m512 z = _mm512_add_ps(_mm512_sub_ps(u, u), _mm512_sub_ps(v, v));
+  const __mmask16 live = _mm512_cmp_ps_mask(z, _mm512_setzero_ps(), _CMP_EQ_OQ) &
+                         static_cast<__mmask16>(cnt >= 16 ? 0xFFFF : (1u << cnt) - 1);
+  u = _mm512_mask_blend_ps(live, _mm512_set1_ps(0.5f), u);
+  v = _mm512_mask_blend_ps(live, _mm512_set1_ps(0.5f), v);
+  return live;
+}
+
+template <int K>
+DT_AVX512 void prepare16(const Args<float>& A, __m512 u, __m512 v, Group16<K>& g) {
+  axis16<K>(u, static_cast<int32_t>(A.W), A.wrap_u, g.ax);
+  axis16<K>(v, static_cast<int32_t>(A.H), A.wrap_v, g.ay);
+  const __m512i rs = _mm512_set1_epi32(static_cast<int32_t>(A.rs)), xs = _mm512_set1_epi32(static_cast<int32_t>(A.xs));
+  for (int r = 0; r < K; ++r) {
+    g.rows[r] = _mm512_mullo_epi32(g.ay.i[r], rs);
+    g.cols[r] = A.xs == 1 ? g.ax.i[r] : _mm512_mullo_epi32(g.ax.i[r], xs);
+  }
+}
+
+// As prefetch8.
+template <int K>
+DT_AVX512 void prefetch16(const Group16<K>& g, const float* base, const Args<float>& A) {
+  alignas(64) int32_t o[K][16];
+  for (int r = 0; r < K; ++r) _mm512_store_si512(o[r], _mm512_add_epi32(g.rows[r], g.cols[0]));
+  if (A.cs == 1) {
+    const int64_t last = K * A.C - 1;
+    for (int j = 0; j < 16; ++j)
+      for (int r = 0; r < K; ++r) {
+        DT_PREFETCH(base + o[r][j], false);
+        DT_PREFETCH(base + o[r][j] + last, false);
+      }
+    return;
+  }
+  for (int j = 0; j < 16; ++j)
+    for (int r = 0; r < K; ++r)
+      for (int64_t c = 0; c < A.C; ++c) DT_PREFETCH(base + c * A.cs + o[r][j], false);
+}
+
+template <int K, int CC, bool kBorder>
+DT_AVX512 void forward16(const Args<float>& A, const Group16<K>& g, const float* tex, float* o, int64_t M) {
+  const int64_t C = CC > 0 ? CC : A.C;
+  const __m512 border = _mm512_set1_ps(A.border);
+  for (int64_t c = 0; c < C; ++c) {
+    const float* chan = tex + c * A.cs;
+    __m512 sum = _mm512_setzero_ps();
+    for (int r = 0; r < K; ++r) {
+      __m512 acc = _mm512_setzero_ps();
+      for (int q = 0; q < K; ++q) {
+        const __m512i idx = _mm512_add_epi32(g.rows[r], g.cols[q]);
+        const __m512 val = kBorder ? _mm512_mask_i32gather_ps(border, g.ay.in[r] & g.ax.in[q], idx, chan, 4)
+                                   : _mm512_i32gather_ps(idx, chan, 4);
+        acc = _mm512_add_ps(acc, _mm512_mul_ps(g.ax.w[q], val));
+      }
+      sum = _mm512_add_ps(sum, _mm512_mul_ps(g.ay.w[r], acc));
+    }
+    if (g.live == 0xFFFF) {
+      _mm512_storeu_ps(o + c * M, sum);
+      continue;
+    }
+    // a non-finite coordinate reads NaN; lanes past cnt are not written
+    const __m512 out = _mm512_mask_blend_ps(g.live, _mm512_set1_ps(std::numeric_limits<float>::quiet_NaN()), sum);
+    _mm512_mask_storeu_ps(o + c * M, static_cast<__mmask16>(g.cnt >= 16 ? 0xFFFF : (1u << g.cnt) - 1), out);
+  }
+}
+
+constexpr int kGroups16 = kBlock / 16;
+
+template <int K>
+DT_AVX512 int prepare_block16(const Args<float>& A, const float* tex, int64_t q, int64_t end, Group16<K>* grp) {
+  const int n = static_cast<int>(std::min<int64_t>(kGroups16, (end - q + 15) / 16));
+  for (int i = 0; i < n; ++i) {
+    const int64_t first = q + 16 * i;
+    __m512 u, v;
+    grp[i].cnt = static_cast<int>(std::min<int64_t>(16, end - first));
+    if (first + kUvLead < end) {
+      DT_PREFETCH(A.uv + 2 * (first + kUvLead), false);
+      DT_PREFETCH(A.uv + 2 * (first + kUvLead) + 16, false);
+    }
+    grp[i].live = load16(A.uv + 2 * first, grp[i].cnt, u, v);
+    prepare16<K>(A, u, v, grp[i]);
+    prefetch16<K>(grp[i], tex, A);
+  }
+  return n;
+}
+
+// forward_range_avx2 sixteen points at a time.
+template <int KIND, int CC, bool kBorder>
+__attribute__((target("avx512f,avx512dq,avx2,fma"))) void forward_range_avx512(int64_t lo, int64_t hi,
+                                                                                const Args<float>& A, float* out) {
+  constexpr int K = taps_of<KIND>();
+  const int64_t C = CC > 0 ? CC : A.C, M = A.M;
+  Group16<K> grp[2][kGroups16];
+  for (int64_t p = lo; p < hi;) {
+    const int64_t b = p / M, end = std::min(hi, (b + 1) * M);
+    const float* tex = A.tex + (A.Bt == 1 ? 0 : b) * A.image;
+    float* o = out + b * C * M - b * M;
+    int cur = 0, n = prepare_block16<K>(A, tex, p, end, grp[0]);
+    for (int64_t q = p; q < end; cur ^= 1) {
+      const int64_t next = q + 16 * n;
+      const int m = next < end ? prepare_block16<K>(A, tex, next, end, grp[cur ^ 1]) : 0;
+      for (int i = 0; i < n; ++i, q += 16) forward16<K, CC, kBorder>(A, grp[cur][i], tex, o + q, M);
       n = m;
     }
     p = end;
@@ -799,7 +997,7 @@ torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, cons
   check_inputs(texture, uv, kind);
   const int64_t B = uv.size(0), C = texture.size(1), M = uv.size(1);
   auto out = torch::empty({B, C, M}, uv.options());
-  const bool simd = simd_read(kind, texture);
+  const bool simd = simd_read(kind, texture), wide = simd && wide_on();
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "sample_forward", [&] {
     const Args<scalar_t> A = args_of<scalar_t>(texture, uv, opts);
     scalar_t* po = out.data_ptr<scalar_t>();
@@ -810,6 +1008,7 @@ torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, cons
         at::parallel_for(0, B * M, 2048, [&](int64_t lo, int64_t hi) {
 #if DT_HAVE_AVX2
           if constexpr (std::is_same_v<scalar_t, float> && KIND != NEAREST) {
+            if (wide) return forward_range_avx512<KIND, CC, kB>(lo, hi, A, po);
             if (simd) return forward_range_avx2<KIND, CC, kB>(lo, hi, A, po);
           }
 #endif
@@ -905,5 +1104,9 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
 bool set_simd(bool enabled) { return simd_switch().exchange(enabled); }
 
 bool simd_available() { return DT_HAVE_AVX2 && cpu_has_avx2(); }
+
+bool set_wide(bool enabled) { return wide_switch().exchange(enabled); }
+
+bool wide_available() { return simd_available() && cpu_has_avx512(); }
 
 }  // namespace difftex
