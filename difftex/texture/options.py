@@ -34,13 +34,19 @@ def check_filter(filter: object) -> str:
 
 def check_number(name: str, value: object, minimum: float, maximum: float = math.inf) -> float:
     """A finite real in [minimum, maximum], as float; TypeError / ValueError naming ``name`` otherwise."""
-    want = ("" if minimum == -math.inf and maximum == math.inf else f" >= {minimum:g}" if maximum == math.inf
-            else f" in [{minimum:g}, {maximum:g}]")
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name}: expected a number{want}, got {type(value).__name__}")
+    # Plain floats and ints skip the numbers.Real ABC check and the message: every sample() call makes
+    # three of these, and both showed in its per-call overhead.
+    if type(value) is not float and type(value) is not int and (isinstance(value, bool)
+                                                                 or not isinstance(value, numbers.Real)):
+        raise TypeError(f"{name}: expected a number{_range_text(minimum, maximum)}, got {type(value).__name__}")
     if not (math.isfinite(value) and minimum <= value <= maximum):
-        raise ValueError(f"{name}: expected a finite number{want}, got {value!r}")
+        raise ValueError(f"{name}: expected a finite number{_range_text(minimum, maximum)}, got {value!r}")
     return float(value)
+
+
+def _range_text(minimum: float, maximum: float) -> str:
+    return ("" if minimum == -math.inf and maximum == math.inf else f" >= {minimum:g}" if maximum == math.inf
+            else f" in [{minimum:g}, {maximum:g}]")
 
 
 def check_bias(lod_bias: object, points: Tensor, points_name: str, ref: Tensor, ref_name: str,
@@ -52,6 +58,8 @@ def check_bias(lod_bias: object, points: Tensor, points_name: str, ref: Tensor, 
     names the pixel axes in the messages. TypeError / ValueError naming
     lod_bias otherwise.
     """
+    if type(lod_bias) is float or type(lod_bias) is int:
+        return float(lod_bias)
     B, H, W = points.shape[:3]
     shape = f"[B, {dims}] = [{B}, {H}, {W}]"
     if isinstance(lod_bias, Tensor):

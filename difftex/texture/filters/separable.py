@@ -66,8 +66,16 @@ def _native_args(kernel, texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wr
     """
     if not texture.is_contiguous(memory_format=torch.channels_last):
         texture = texture.contiguous()
-    return (texture, uv.contiguous(), kernel.KIND_CODES[kind],
-            kernel.ReadOptions(wrap_u=WRAP_CODES[wrap_u], wrap_v=WRAP_CODES[wrap_v], border=border))
+    key = (kernel, wrap_u, wrap_v, border)
+    opts = _OPTIONS.get(key)
+    if opts is None:  # built once per mode: the binding's constructor was a tenth of a call's overhead
+        if len(_OPTIONS) >= 256:  # many border values: start over rather than grow
+            _OPTIONS.clear()
+        opts = _OPTIONS[key] = kernel.ReadOptions(wrap_u=WRAP_CODES[wrap_u], wrap_v=WRAP_CODES[wrap_v], border=border)
+    return texture, uv.contiguous(), kernel.KIND_CODES[kind], opts
+
+
+_OPTIONS: dict = {}
 
 
 def separable_sample(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float = 0.0) -> Tensor:
