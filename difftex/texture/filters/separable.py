@@ -66,7 +66,7 @@ def _native_args(kernel, texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wr
     """
     if not texture.is_contiguous(memory_format=torch.channels_last):
         texture = texture.contiguous()
-    key = (kernel, wrap_u, wrap_v, border)
+    key = (wrap_u, wrap_v, border)  # one kernel module a process (load())
     opts = _OPTIONS.get(key)
     if opts is None:  # built once per mode: the binding's constructor was a tenth of a call's overhead
         if len(_OPTIONS) >= 256:  # many border values: start over rather than grow
