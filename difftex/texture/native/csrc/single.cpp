@@ -538,27 +538,34 @@ DT_AVX2 void prepare8(const Args<float>& A, __m256 u, __m256 v, Group8<K>& g) {
   }
 }
 
-// Prefetches the lines of a group's taps in C channels from base (kWrite: to write them, the texture
-// gradient), as prefetch_block does for the scalar loop: a block's groups are prepared and prefetched first,
-// then read, so that their misses overlap (measured: the backward without it waited on memory for most of
-// its time).
-template <int K, bool kWrite>
-DT_AVX2 void prefetch8(const Group8<K>& g, const float* base, const Args<float>& A) {
-  alignas(32) int32_t o[K][8];
-  for (int r = 0; r < K; ++r)
-    _mm256_store_si256(reinterpret_cast<__m256i*>(o[r]), _mm256_add_epi32(g.rows[r], g.cols[0]));
+// Prefetches the lines of N points' taps in C channels from base (kWrite: to write them, the texture
+// gradient), given their first taps' offsets o[r][j] (row r, point j), as prefetch_block does for the scalar
+// loop: a block's groups are prepared and prefetched first, then read, so that their misses overlap
+// (measured: the backward without it waited on memory for most of its time).
+template <int K, int N, bool kWrite>
+inline __attribute__((always_inline)) void prefetch_rows(const int32_t (*o)[N], const float* base,
+                                                         const Args<float>& A) {
   if (A.cs == 1) {  // interleaved: a row's taps are K texels of C adjacent floats (unless they wrap)
     const int64_t last = K * A.C - 1;
-    for (int j = 0; j < 8; ++j)
+    for (int j = 0; j < N; ++j)
       for (int r = 0; r < K; ++r) {
         DT_PREFETCH(base + o[r][j], kWrite);
         DT_PREFETCH(base + o[r][j] + last, kWrite);
       }
     return;
   }
-  for (int j = 0; j < 8; ++j)
+  for (int j = 0; j < N; ++j)
     for (int r = 0; r < K; ++r)
       for (int64_t c = 0; c < A.C; ++c) DT_PREFETCH(base + c * A.cs + o[r][j], kWrite);
+}
+
+// prefetch_rows of a group of eight.
+template <int K, bool kWrite>
+DT_AVX2 void prefetch8(const Group8<K>& g, const float* base, const Args<float>& A) {
+  alignas(32) int32_t o[K][8];
+  for (int r = 0; r < K; ++r)
+    _mm256_store_si256(reinterpret_cast<__m256i*>(o[r]), _mm256_add_epi32(g.rows[r], g.cols[0]));
+  prefetch_rows<K, 8, kWrite>(o, base, A);
 }
 
 // Texels of tap (r, q) of a group in one channel (its first value at chan); border taps read the constant.
@@ -749,23 +756,11 @@ DT_AVX512 void prepare16(const Args<float>& A, __m512 u, __m512 v, Group16<K>& g
   }
 }
 
-// As prefetch8.
 template <int K>
 DT_AVX512 void prefetch16(const Group16<K>& g, const float* base, const Args<float>& A) {
   alignas(64) int32_t o[K][16];
   for (int r = 0; r < K; ++r) _mm512_store_si512(o[r], _mm512_add_epi32(g.rows[r], g.cols[0]));
-  if (A.cs == 1) {
-    const int64_t last = K * A.C - 1;
-    for (int j = 0; j < 16; ++j)
-      for (int r = 0; r < K; ++r) {
-        DT_PREFETCH(base + o[r][j], false);
-        DT_PREFETCH(base + o[r][j] + last, false);
-      }
-    return;
-  }
-  for (int j = 0; j < 16; ++j)
-    for (int r = 0; r < K; ++r)
-      for (int64_t c = 0; c < A.C; ++c) DT_PREFETCH(base + c * A.cs + o[r][j], false);
+  prefetch_rows<K, 16, false>(o, base, A);
 }
 
 template <int K, int CC, bool kBorder>
