@@ -193,70 +193,126 @@ DT_AVX2 bool reads8(const float* pd, const int64_t* e, int64_t K, bool nearest, 
   return true;
 }
 
-// The forward of points [lo, hi) with one tap each, float32, by groups of eight.
+// A group of eight points prepared for its reads: whether it takes the vector path (finite points reading the
+// same levels), and then its levels, their taps' texel offsets and their weights.
+struct TapGroup8 {
+  bool vec;
+  int n;
+  int64_t k[2];
+  Quad8 t[2];
+  __m256 w[2][4];
+};
+
+// Prepares the group of points [e, e + 8) and prefetches the texel rows it reads (all C planes of each level):
+// a block of groups is prepared and prefetched before the block before it is read, so that the misses of
+// a block overlap the reads of the one before (as single.cpp's forward). Measured on a 1024^2 RGB texture,
+// 512^2 points: a trilinear forward call in 0.78x the time of reading each group as soon as it was placed,
+// on one thread and on two. Prefetching the second tap of each row too, or the uv ahead, made it slower.
+DT_AVX2 void prepare_taps8(int64_t e, int64_t C, const std::vector<Level>& L, const std::vector<const float*>& lp,
+                           const float* puv, const float* pd, int64_t wrap_u, int64_t wrap_v, bool nearest,
+                           bool d_grad, TapGroup8& g) {
+  alignas(32) double u[8], v[8];
+  bool ok = true;
+  for (int j = 0; j < 8; ++j) {
+    u[j] = puv[2 * (e + j)], v[j] = puv[2 * (e + j) + 1];
+    ok = ok && std::isfinite(u[j]) && std::isfinite(v[j]);
+  }
+  Reads r[8];
+  g.vec = ok && reads8(pd + e, nullptr, static_cast<int64_t>(L.size()), nearest, d_grad, r);
+  if (!g.vec) return;
+  g.n = r[0].n;
+  for (int jr = 0; jr < g.n; ++jr) {
+    const Level& lv = L[r[0].k[jr]];
+    g.k[jr] = r[0].k[jr];
+    Place8 px, py;
+    place8(u, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
+    place8(v, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
+    g.t[jr] = quad8(px, py, static_cast<int32_t>(lv.w));
+    alignas(32) double wl[8];
+    for (int j = 0; j < 8; ++j) wl[j] = r[j].wt[jr];
+    __m256d w4[2][4];
+    for (int h = 0; h < 2; ++h) {  // wl * (1 - fx) * (1 - fy) ... in double, as the scalar loop
+      const __m256d l = _mm256_load_pd(wl + 4 * h), one = _mm256_set1_pd(1.0);
+      const __m256d gx = _mm256_sub_pd(one, px.f[h]), gy = _mm256_sub_pd(one, py.f[h]);
+      w4[h][0] = _mm256_mul_pd(_mm256_mul_pd(l, gx), gy);
+      w4[h][1] = _mm256_mul_pd(_mm256_mul_pd(l, px.f[h]), gy);
+      w4[h][2] = _mm256_mul_pd(_mm256_mul_pd(l, gx), py.f[h]);
+      w4[h][3] = _mm256_mul_pd(_mm256_mul_pd(l, px.f[h]), py.f[h]);
+    }
+    for (int q = 0; q < 4; ++q) g.w[jr][q] = to_ps(w4[0][q], w4[1][q]);
+    alignas(32) int32_t o[2][8];  // the first tap of each row (x0 and x1 share a line but at its end)
+    _mm256_store_si256(reinterpret_cast<__m256i*>(o[0]), g.t[jr].idx[0]);
+    _mm256_store_si256(reinterpret_cast<__m256i*>(o[1]), g.t[jr].idx[2]);
+    const float* p = lp[g.k[jr]];
+    for (int j = 0; j < 8; ++j)
+      for (int64_t c = 0; c < C; ++c) {
+        DT_PREFETCH(p + c * lv.plane + o[0][j], false);
+        DT_PREFETCH(p + c * lv.plane + o[1][j], false);
+      }
+  }
+}
+
+// The reads of a prepared vector group into po[c * M + e].
+template <int CC, bool kBorder>
+DT_AVX2 void read_taps8(const TapGroup8& g, int64_t e, int64_t C, const std::vector<Level>& L,
+                        const std::vector<const float*>& lp, float* po, int64_t M, __m256 bv) {
+  __m256 acc[CC > 0 ? CC : 1];
+  for (int64_t c = 0; c < (CC > 0 ? CC : 1); ++c) acc[c] = _mm256_setzero_ps();
+  for (int jr = 0; jr < g.n; ++jr) {
+    const Level& lv = L[g.k[jr]];
+    const float* p = lp[g.k[jr]];
+    for (int64_t c = 0; c < C; ++c) {
+      const float* pp = p + c * lv.plane;
+      __m256 s = _mm256_setzero_ps();
+      for (int q = 0; q < 4; ++q) s = _mm256_add_ps(s, _mm256_mul_ps(g.w[jr][q], tap8<kBorder>(pp, g.t[jr], q, bv)));
+      if (CC > 0) {
+        acc[c] = _mm256_add_ps(acc[c], s);
+      } else {  // run-time channel count: accumulate in the output
+        float* o = po + c * M + e;
+        _mm256_storeu_ps(o, jr == 0 ? s : _mm256_add_ps(_mm256_loadu_ps(o), s));
+      }
+    }
+  }
+  if (CC > 0)
+    for (int64_t c = 0; c < C; ++c) _mm256_storeu_ps(po + c * M + e, acc[c]);
+}
+
+constexpr int kTapGroups = 8;  // groups of eight points a block
+
+// The forward of points [lo, hi) with one tap each, float32, by groups of eight in blocks of kTapGroups: two
+// blocks in flight (block i + 1 prepared and prefetched before block i is read). Groups on mixed levels or
+// holding a non-finite point, and the tail, go through the scalar loop.
 template <int CC, bool kBorder>
 __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t hi, int64_t Cdyn,
                                                             const std::vector<Level>& L,
                                                             const std::vector<const float*>& lp, const float* puv,
                                                             const float* pd, float* po, int64_t M, int64_t wrap_u,
                                                             int64_t wrap_v, double border, bool nearest, bool d_grad) {
-  const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
+  const int64_t C = CC > 0 ? CC : Cdyn;
   const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
-  int64_t e = lo;
-  for (; e + 8 <= hi; e += 8) {
-    alignas(32) double u[8], v[8];
-    bool ok = true;
-    for (int j = 0; j < 8; ++j) {
-      u[j] = puv[2 * (e + j)], v[j] = puv[2 * (e + j) + 1];
-      ok = ok && std::isfinite(u[j]) && std::isfinite(v[j]);
+  const int64_t groups = (hi - lo) / 8, end = lo + 8 * groups;
+  TapGroup8 blk[2][kTapGroups];
+  auto prepare = [&](int64_t first, TapGroup8* b) __attribute__((target("avx2,fma"))) {
+    const int n = static_cast<int>(std::min<int64_t>(kTapGroups, (end - first) / 8));
+    for (int i = 0; i < n; ++i)
+      prepare_taps8(first + 8 * i, C, L, lp, puv, pd, wrap_u, wrap_v, nearest, d_grad, b[i]);
+    return n;
+  };
+  int cur = 0, n = lo < end ? prepare(lo, blk[0]) : 0;
+  for (int64_t e = lo; e < end; cur ^= 1) {
+    const int64_t next = e + 8 * n;
+    const int m = next < end ? prepare(next, blk[cur ^ 1]) : 0;
+    for (int i = 0; i < n; ++i, e += 8) {
+      if (blk[cur][i].vec)
+        read_taps8<CC, kBorder>(blk[cur][i], e, C, L, lp, po, M, bv);
+      else
+        forward_range<float, CC, kBorder>(e, e + 8, C, L, lp, puv, pd, nullptr, nullptr, po, M, wrap_u, wrap_v,
+                                          border, nearest, d_grad);
     }
-    Reads r[8];
-    if (!ok || !reads8(pd + e, nullptr, K, nearest, d_grad, r)) {
-      forward_range<float, CC, kBorder>(e, e + 8, C, L, lp, puv, pd, nullptr, nullptr, po, M, wrap_u, wrap_v, border,
-                                        nearest, d_grad);
-      continue;
-    }
-    __m256 acc[CC > 0 ? CC : 1];
-    for (int64_t c = 0; c < (CC > 0 ? CC : 1); ++c) acc[c] = _mm256_setzero_ps();
-    for (int jr = 0; jr < r[0].n; ++jr) {
-      const Level& lv = L[r[0].k[jr]];
-      Place8 px, py;
-      place8(u, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
-      place8(v, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
-      const Quad8 t = quad8(px, py, static_cast<int32_t>(lv.w));
-      __m256 wts[4];
-      {
-        alignas(32) double wl[8];
-        for (int j = 0; j < 8; ++j) wl[j] = r[j].wt[jr];
-        __m256d w4[2][4];
-        for (int h = 0; h < 2; ++h) {  // wl * (1 - fx) * (1 - fy) ... in double, as the scalar loop
-          const __m256d l = _mm256_load_pd(wl + 4 * h), one = _mm256_set1_pd(1.0);
-          const __m256d gx = _mm256_sub_pd(one, px.f[h]), gy = _mm256_sub_pd(one, py.f[h]);
-          w4[h][0] = _mm256_mul_pd(_mm256_mul_pd(l, gx), gy);
-          w4[h][1] = _mm256_mul_pd(_mm256_mul_pd(l, px.f[h]), gy);
-          w4[h][2] = _mm256_mul_pd(_mm256_mul_pd(l, gx), py.f[h]);
-          w4[h][3] = _mm256_mul_pd(_mm256_mul_pd(l, px.f[h]), py.f[h]);
-        }
-        for (int q = 0; q < 4; ++q) wts[q] = to_ps(w4[0][q], w4[1][q]);
-      }
-      const float* p = lp[r[0].k[jr]];
-      for (int64_t c = 0; c < C; ++c) {
-        const float* pp = p + c * lv.plane;
-        __m256 s = _mm256_setzero_ps();
-        for (int q = 0; q < 4; ++q) s = _mm256_add_ps(s, _mm256_mul_ps(wts[q], tap8<kBorder>(pp, t, q, bv)));
-        if (CC > 0) {
-          acc[c] = _mm256_add_ps(acc[c], s);
-        } else {  // run-time channel count: accumulate in the output
-          float* o = po + c * M + e;
-          _mm256_storeu_ps(o, jr == 0 ? s : _mm256_add_ps(_mm256_loadu_ps(o), s));
-        }
-      }
-    }
-    if (CC > 0)
-      for (int64_t c = 0; c < C; ++c) _mm256_storeu_ps(po + c * M + e, acc[c]);
+    n = m;
   }
-  if (e < hi)
-    forward_range<float, CC, kBorder>(e, hi, C, L, lp, puv, pd, nullptr, nullptr, po, M, wrap_u, wrap_v, border,
+  if (end < hi)
+    forward_range<float, CC, kBorder>(end, hi, C, L, lp, puv, pd, nullptr, nullptr, po, M, wrap_u, wrap_v, border,
                                       nearest, d_grad);
 }
 
