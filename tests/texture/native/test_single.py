@@ -209,18 +209,19 @@ def test_the_vector_paths_read_as_the_scalar_loop_and_the_reference(filter):
 
 
 @pytest.mark.skipif(not SIMD, reason="this CPU has no AVX2 / FMA")
-@pytest.mark.parametrize("filter", ["trilinear", "nearest-mip"])
+@pytest.mark.parametrize("filter", ["trilinear", "nearest-mip", "anisotropic", "auto"])
 def test_the_eight_point_taps_read_as_the_scalar_loop_and_the_reference(filter):
-    # 2 x 12 x 16 points on a 20 x 24 texture: the first rows share one footprint (groups of eight on the same
-    # levels: the eight-point path), the others have a random one each (groups on mixed levels: the scalar
-    # loop); a NaN inside a group; uv up to a texture past each edge; gradients to texture, uv and both
-    # derivatives (through the level). Both paths give the same bits, so grouping cannot change a result.
+    # 2 x 12 x 16 points on a 20 x 24 texture: the first rows share one footprint, 4:1 (groups of eight on the
+    # same levels with one tap count: the eight-point paths, one tap or four), the others have a random one
+    # each (groups on mixed levels and counts: the scalar loop); a NaN inside a group; uv up to a texture past
+    # each edge; gradients to texture, uv and both derivatives (through the level). Both paths give the same
+    # bits, so grouping cannot change a result.
     g = torch.Generator().manual_seed(5)
     tex = torch.rand(2, 3, 20, 24, generator=g)
     uv = torch.rand(2, 12, 16, 2, generator=g) * 3 - 1
     dx = torch.randn(2, 12, 16, 2, generator=g) * 0.1
     dy = torch.randn(2, 12, 16, 2, generator=g) * 0.1
-    dx[:, :6], dy[:, :6] = dx[:, :1, :1].clone(), dy[:, :1, :1].clone()
+    dx[:, :6], dy[:, :6] = torch.tensor([0.16, 0.02]), torch.tensor([-0.01, 0.04])
     uv[1, 3, 4, 1] = float("nan")
     kernel = native.load()
 

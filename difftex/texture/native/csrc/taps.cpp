@@ -193,6 +193,23 @@ DT_AVX2 bool reads8(const float* pd, const int64_t* e, int64_t K, bool nearest, 
   return true;
 }
 
+// The four bilinear weights of eight points' taps on their level jr: wl * (1 - fx) * (1 - fy) ... in double,
+// as the scalar loop, then float32.
+DT_AVX2 void tap_weights8(const Reads* r, int jr, const Place8& px, const Place8& py, __m256* w) {
+  alignas(32) double wl[8];
+  for (int j = 0; j < 8; ++j) wl[j] = r[j].wt[jr];
+  __m256d w4[2][4];
+  for (int h = 0; h < 2; ++h) {
+    const __m256d l = _mm256_load_pd(wl + 4 * h), one = _mm256_set1_pd(1.0);
+    const __m256d gx = _mm256_sub_pd(one, px.f[h]), gy = _mm256_sub_pd(one, py.f[h]);
+    w4[h][0] = _mm256_mul_pd(_mm256_mul_pd(l, gx), gy);
+    w4[h][1] = _mm256_mul_pd(_mm256_mul_pd(l, px.f[h]), gy);
+    w4[h][2] = _mm256_mul_pd(_mm256_mul_pd(l, gx), py.f[h]);
+    w4[h][3] = _mm256_mul_pd(_mm256_mul_pd(l, px.f[h]), py.f[h]);
+  }
+  for (int q = 0; q < 4; ++q) w[q] = to_ps(w4[0][q], w4[1][q]);
+}
+
 // A group of eight points prepared for its reads: whether it takes the vector path (finite points reading the
 // same levels), and then its levels, their taps' texel offsets and their weights.
 struct TapGroup8 {
@@ -228,18 +245,7 @@ DT_AVX2 void prepare_taps8(int64_t e, int64_t C, const std::vector<Level>& L, co
     place8(u, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
     place8(v, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
     g.t[jr] = quad8(px, py, static_cast<int32_t>(lv.w));
-    alignas(32) double wl[8];
-    for (int j = 0; j < 8; ++j) wl[j] = r[j].wt[jr];
-    __m256d w4[2][4];
-    for (int h = 0; h < 2; ++h) {  // wl * (1 - fx) * (1 - fy) ... in double, as the scalar loop
-      const __m256d l = _mm256_load_pd(wl + 4 * h), one = _mm256_set1_pd(1.0);
-      const __m256d gx = _mm256_sub_pd(one, px.f[h]), gy = _mm256_sub_pd(one, py.f[h]);
-      w4[h][0] = _mm256_mul_pd(_mm256_mul_pd(l, gx), gy);
-      w4[h][1] = _mm256_mul_pd(_mm256_mul_pd(l, px.f[h]), gy);
-      w4[h][2] = _mm256_mul_pd(_mm256_mul_pd(l, gx), py.f[h]);
-      w4[h][3] = _mm256_mul_pd(_mm256_mul_pd(l, px.f[h]), py.f[h]);
-    }
-    for (int q = 0; q < 4; ++q) g.w[jr][q] = to_ps(w4[0][q], w4[1][q]);
+    tap_weights8(r, jr, px, py, g.w[jr]);
     alignas(32) int32_t o[2][8];  // the first tap of each row (x0 and x1 share a line but at its end)
     _mm256_store_si256(reinterpret_cast<__m256i*>(o[0]), g.t[jr].idx[0]);
     _mm256_store_si256(reinterpret_cast<__m256i*>(o[1]), g.t[jr].idx[2]);
@@ -316,15 +322,81 @@ __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t 
                                       nearest, d_grad);
 }
 
+// The forward of points [lo, hi) with N taps each (anisotropic, auto: count pc, axis pa), float32, eight
+// points at a time where the eight have one tap count and read the same levels (most groups: both follow the
+// footprint); the channel count fixed at compile time (CC > 0). Tap i of each point is placed as the scalar
+// loop places it (u + o_i * axis in double, then fold and place) and the sums run in its order, so a point
+// gives the same bits on either path. Other groups, the tail and CC = 0 go through the scalar loop.
+// Measured on a 1024^2 RGB texture, 512^2 points, 4 taps a point: an anisotropic forward call in 0.50x the
+// scalar loop's time on one thread and on two, auto in 0.54x.
+template <int CC, bool kBorder>
+__attribute__((target("avx2,fma"))) void forward_taps_avx2(int64_t lo, int64_t hi, int64_t Cdyn,
+                                                           const std::vector<Level>& L,
+                                                           const std::vector<const float*>& lp, const float* puv,
+                                                           const float* pd, const int64_t* pc, const float* pa,
+                                                           float* po, int64_t M, int64_t wrap_u, int64_t wrap_v,
+                                                           double border, bool nearest, bool d_grad) {
+  const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
+  const int64_t K = static_cast<int64_t>(L.size());
+  int64_t e = lo;
+  for (; CC > 0 && e + 8 <= hi; e += 8) {
+    const int64_t N = tap_count(pc, e);
+    bool ok = true;
+    for (int j = 0; j < 8 && ok; ++j)
+      ok = tap_count(pc, e + j) == N && std::isfinite(puv[2 * (e + j)]) && std::isfinite(puv[2 * (e + j) + 1]);
+    Reads r[8];
+    if (!ok || !reads8(pd + e, nullptr, K, nearest, d_grad, r)) {
+      forward_range<float, CC, kBorder>(e, e + 8, CC, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border,
+                                        nearest, d_grad);
+      continue;
+    }
+    __m256 acc[CC > 0 ? CC : 1];
+    for (int c = 0; c < CC; ++c) acc[c] = _mm256_setzero_ps();
+    for (int64_t i = 0; i < N; ++i) {
+      const double o = tap_offset(i, N);
+      alignas(32) double tu[8], tv[8];
+      for (int j = 0; j < 8; ++j) {
+        tu[j] = static_cast<double>(puv[2 * (e + j)]) + o * static_cast<double>(pa[2 * (e + j)]);
+        tv[j] = static_cast<double>(puv[2 * (e + j) + 1]) + o * static_cast<double>(pa[2 * (e + j) + 1]);
+      }
+      for (int jr = 0; jr < r[0].n; ++jr) {
+        const Level& lv = L[r[0].k[jr]];
+        Place8 px, py;
+        place8(tu, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
+        place8(tv, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
+        const Quad8 t = quad8(px, py, static_cast<int32_t>(lv.w));
+        __m256 w[4];
+        tap_weights8(r, jr, px, py, w);
+        const float* p = lp[r[0].k[jr]];
+        for (int c = 0; c < CC; ++c) {
+          const float* pp = p + c * lv.plane;
+          __m256 s = _mm256_setzero_ps();
+          for (int q = 0; q < 4; ++q) s = _mm256_add_ps(s, _mm256_mul_ps(w[q], tap8<kBorder>(pp, t, q, bv)));
+          acc[c] = _mm256_add_ps(acc[c], s);
+        }
+      }
+    }
+    const __m256 n = _mm256_set1_ps(static_cast<float>(N));
+    for (int c = 0; c < CC; ++c) _mm256_storeu_ps(po + c * M + e, _mm256_div_ps(acc[c], n));
+  }
+  if (e < hi)
+    forward_range<float, CC, kBorder>(e, hi, Cdyn, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border, nearest,
+                                      d_grad);
+}
+
 #endif
 
-// Whether a read goes through the eight-point path: float32, one tap a point, levels with int32 texel offsets.
-bool simd_taps(const torch::Tensor& uv, const torch::Tensor& count, const std::vector<torch::Tensor>& levels) {
-  if (!(simd_on() && uv.scalar_type() == torch::kFloat32 && count.numel() == 0))
-    return false;
+// Whether float32 reads of these levels can take the eight-point paths (on, float32, int32 texel offsets).
+bool simd_levels(const torch::Tensor& uv, const std::vector<torch::Tensor>& levels) {
+  if (!(simd_on() && uv.scalar_type() == torch::kFloat32)) return false;
   for (const auto& t : levels)
     if (t.size(1) * t.size(2) >= (int64_t(1) << 31)) return false;
   return true;
+}
+
+// Whether a one-tap read (no counts) goes through the eight-point path.
+bool simd_taps(const torch::Tensor& uv, const torch::Tensor& count, const std::vector<torch::Tensor>& levels) {
+  return count.numel() == 0 && simd_levels(uv, levels);
 }
 
 }  // namespace
@@ -337,7 +409,7 @@ torch::Tensor forward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch
   auto L = shapes(levels, uv, D, axis, count);
   const int64_t C = levels[0].size(0), M = uv.size(0);
   auto out = torch::empty({C, M}, uv.options());
-  const bool simd = simd_taps(uv, count, levels);
+  const bool simd = simd_taps(uv, count, levels), simd_n = simd_levels(uv, levels) && count.numel() != 0;
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_forward", [&] {
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
@@ -354,6 +426,8 @@ torch::Tensor forward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch
         if constexpr (std::is_same_v<scalar_t, float>) {
           if (simd) return forward_range_avx2<CC, kB>(lo, hi, C, L, lp, puv, pd, po, M, wrap_u, wrap_v, border,
                                                        nearest, d_grad);
+          if (simd_n) return forward_taps_avx2<CC, kB>(lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v,
+                                                      border, nearest, d_grad);
         }
 #endif
         forward_range<scalar_t, CC, kB>(lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border, nearest,
