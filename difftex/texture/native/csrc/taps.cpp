@@ -246,7 +246,7 @@ DT_AVX2 void prepare_taps8(int64_t e, int64_t C, const std::vector<Level>& L, co
     place8(v, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
     g.t[jr] = quad8(px, py, static_cast<int32_t>(lv.w));
     tap_weights8(r, jr, px, py, g.w[jr]);
-    alignas(32) int32_t o[2][8];  // the first tap of each row (x0 and x1 share a line but at its end)
+    alignas(32) int32_t o[2][8];  // the first tap of each row (x1 shares its line unless x0 ends one)
     _mm256_store_si256(reinterpret_cast<__m256i*>(o[0]), g.t[jr].idx[0]);
     _mm256_store_si256(reinterpret_cast<__m256i*>(o[1]), g.t[jr].idx[2]);
     const float* p = lp[g.k[jr]];
