@@ -9,6 +9,8 @@ is itself differentiable.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -66,7 +68,7 @@ def _native_args(kernel, texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wr
     """
     if not texture.is_contiguous(memory_format=torch.channels_last):
         texture = texture.contiguous()
-    key = (wrap_u, wrap_v, border)  # one kernel module a process (load())
+    key = (wrap_u, wrap_v, border, math.copysign(1.0, border))  # -0.0 == 0.0 as keys; one module a process
     opts = _OPTIONS.get(key)
     if opts is None:  # built once per mode: the binding's constructor was a tenth of a call's overhead
         if len(_OPTIONS) >= 256:  # many border values: start over rather than grow
