@@ -704,8 +704,10 @@ DT_AVX512 void axis16(__m512 u, int32_t n, int mode, Axis16<K>& a) {
       r = _mm512_mask_add_epi32(r, below, r, P);
       r = _mm512_mask_add_epi32(r, _mm512_cmpgt_epi32_mask(zero, r), r, P);
       r = _mm512_mask_sub_epi32(r, _mm512_cmpge_epi32_mask(r, P), r, P);
-      if (mode == MIRROR)
-        r = _mm512_mask_blend_epi32(_mm512_cmpgt_epi32_mask(ni, r), _mm512_sub_epi32(_mm512_set1_epi32(2 * n - 1), r), r);
+      if (mode == MIRROR) {  // the second copy reflected
+        const __m512i reflected = _mm512_sub_epi32(_mm512_set1_epi32(2 * n - 1), r);
+        r = _mm512_mask_blend_epi32(_mm512_cmpgt_epi32_mask(ni, r), reflected, r);
+      }
     } else if (mode == BORDER) {
       in = static_cast<__mmask16>(~(below | _mm512_cmpgt_epi32_mask(r, last)));
     }
