@@ -610,7 +610,7 @@ constexpr int64_t kUvLead = 4 * kBlock;
 // Prepares the block of groups of points from q (up to end, a batch entry's points on texture tex) and
 // prefetches their lines. Returns the group count.
 template <int K>
-DT_AVX2 int prepare_block(const Args<float>& A, const float* tex, int64_t C, int64_t q, int64_t end, Group8<K>* grp) {
+DT_AVX2 int prepare_block(const Args<float>& A, const float* tex, int64_t q, int64_t end, Group8<K>* grp) {
   const int n = static_cast<int>(std::min<int64_t>(kGroups, (end - q + 7) / 8));
   for (int i = 0; i < n; ++i) {
     const int64_t first = q + 8 * i;
@@ -639,10 +639,10 @@ __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t 
     const int64_t b = p / M, end = std::min(hi, (b + 1) * M);
     const float* tex = A.tex + (A.Bt == 1 ? 0 : b) * A.image;
     float* o = out + b * C * M - b * M;  // o[p] is point p's first channel
-    int cur = 0, n = prepare_block<K>(A, tex, C, p, end, grp[0]);
+    int cur = 0, n = prepare_block<K>(A, tex, p, end, grp[0]);
     for (int64_t q = p; q < end; cur ^= 1) {
       const int64_t next = q + 8 * n;
-      const int m = next < end ? prepare_block<K>(A, tex, C, next, end, grp[cur ^ 1]) : 0;
+      const int m = next < end ? prepare_block<K>(A, tex, next, end, grp[cur ^ 1]) : 0;
       for (int i = 0; i < n; ++i, q += 8) forward8<K, CC, kBorder>(A, grp[cur][i], tex, o + q, M);
       n = m;
     }
