@@ -193,6 +193,17 @@ DT_AVX2 bool reads8(const float* pd, const int64_t* e, int64_t K, bool nearest, 
   return true;
 }
 
+// Whether the points [e, e + 8) go through a forward's eight-point path: finite uv, one tap count (pc; null:
+// one tap each) and the same levels (their reads in r).
+DT_AVX2 bool group_reads8(int64_t e, const float* puv, const float* pd, const int64_t* pc, int64_t K, bool nearest,
+                          bool d_grad, Reads* r) {
+  const int64_t N = tap_count(pc, e);
+  for (int j = 0; j < 8; ++j)
+    if (tap_count(pc, e + j) != N || !std::isfinite(puv[2 * (e + j)]) || !std::isfinite(puv[2 * (e + j) + 1]))
+      return false;
+  return reads8(pd + e, nullptr, K, nearest, d_grad, r);
+}
+
 // The four bilinear weights of eight points' taps on their level jr: wl * (1 - fx) * (1 - fy) ... in double,
 // as the scalar loop, then float32.
 DT_AVX2 void tap_weights8(const Reads* r, int jr, const Place8& px, const Place8& py, __m256* w) {
@@ -228,15 +239,11 @@ struct TapGroup8 {
 DT_AVX2 void prepare_taps8(int64_t e, int64_t C, const std::vector<Level>& L, const std::vector<const float*>& lp,
                            const float* puv, const float* pd, int64_t wrap_u, int64_t wrap_v, bool nearest,
                            bool d_grad, TapGroup8& g) {
-  alignas(32) double u[8], v[8];
-  bool ok = true;
-  for (int j = 0; j < 8; ++j) {
-    u[j] = puv[2 * (e + j)], v[j] = puv[2 * (e + j) + 1];
-    ok = ok && std::isfinite(u[j]) && std::isfinite(v[j]);
-  }
   Reads r[8];
-  g.vec = ok && reads8(pd + e, nullptr, static_cast<int64_t>(L.size()), nearest, d_grad, r);
+  g.vec = group_reads8(e, puv, pd, nullptr, static_cast<int64_t>(L.size()), nearest, d_grad, r);
   if (!g.vec) return;
+  alignas(32) double u[8], v[8];
+  for (int j = 0; j < 8; ++j) u[j] = puv[2 * (e + j)], v[j] = puv[2 * (e + j) + 1];
   g.n = r[0].n;
   for (int jr = 0; jr < g.n; ++jr) {
     const Level& lv = L[r[0].k[jr]];
@@ -341,11 +348,8 @@ __attribute__((target("avx2,fma"))) void forward_taps_avx2(int64_t lo, int64_t h
   int64_t e = lo;
   for (; CC > 0 && e + 8 <= hi; e += 8) {
     const int64_t N = tap_count(pc, e);
-    bool ok = true;
-    for (int j = 0; j < 8 && ok; ++j)
-      ok = tap_count(pc, e + j) == N && std::isfinite(puv[2 * (e + j)]) && std::isfinite(puv[2 * (e + j) + 1]);
     Reads r[8];
-    if (!ok || !reads8(pd + e, nullptr, K, nearest, d_grad, r)) {
+    if (!group_reads8(e, puv, pd, pc, K, nearest, d_grad, r)) {
       forward_range<float, CC, kBorder>(e, e + 8, CC, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border,
                                         nearest, d_grad);
       continue;
