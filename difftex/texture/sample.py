@@ -146,9 +146,8 @@ def sample(
             pyramid = texture
         return _sample_mip(pyramid, uv, derivs[0], derivs[1], bias, B, filter, max_aniso, tolerance,
                            wrap_u, wrap_v, border_value)
-    flat_uv = (uv if uv.shape[0] == B else uv.expand(B, -1, -1, -1)).reshape(B, -1, 2)
-    out = separable_sample(texture, flat_uv, SEPARABLE[filter], wrap_u, wrap_v, border_value)
-    return out.view(B, C, Ho, Wo)
+    return separable_sample(texture, uv if uv.shape[0] == B else uv.expand(B, -1, -1, -1), SEPARABLE[filter],
+                            wrap_u, wrap_v, border_value)
 
 
 def _check_derivatives(filter: str, uv: Tensor, texture: Tensor, uv_dx: object, uv_dy: object) -> list[Tensor]:

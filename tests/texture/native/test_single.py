@@ -27,6 +27,7 @@ import torch
 import difftex
 from difftex.texture import native
 from difftex.texture.filters import gather
+from difftex.texture.wrap import WRAP_CODES
 from tests.conftest import use_backend
 
 f32, f64 = torch.float32, torch.float64
@@ -106,6 +107,32 @@ def test_batches_channels_and_non_contiguous_inputs(B, Bt, C, dtype, path):
     assert not tex.is_contiguous() and not uv.is_contiguous()
     for filter in ("bilinear", "bicubic"):
         _assert_matches(tex, uv, filter, ("mirror", "border"), TOL[dtype])
+
+
+@pytest.mark.parametrize("dtype", [f32, f64], ids=["float32", "float64"])
+def test_the_kernel_reads_any_pixel_shape_in_place(dtype, path):
+    # uv [B, *S, 2] -> [B, C, *S]: difftex.sample's calls without a graph pass [B, Ho, Wo, 2] as it is (no
+    # reshape or view a call); the values and the backward are the flat list's, bit for bit.
+    kernel = native.load()
+    tex, uv = _inputs(dtype, B=2, Bt=1, C=3, H=6, W=5, Ho=4, Wo=7)
+    opts = kernel.ReadOptions(wrap_u=WRAP_CODES["repeat"], wrap_v=WRAP_CODES["mirror"], border=0.0)
+    flat = uv.reshape(2, -1, 2)
+    for kind in (1, 2):
+        out = kernel.sample(tex, uv, kind, opts)
+        assert out.shape == (2, 3, 4, 7)
+        assert torch.equal(out, kernel.sample(tex, flat, kind, opts).view(2, 3, 4, 7))
+        g = torch.randn(out.shape, generator=torch.Generator().manual_seed(3), dtype=dtype)
+        gt, gu = kernel.sample_backward(tex, uv, g, kind, opts, need_texture=True, need_uv=True)
+        ft, fu = kernel.sample_backward(tex, flat, g.view(2, 3, -1), kind, opts, need_texture=True, need_uv=True)
+        assert torch.equal(gt, ft) and torch.equal(gu, fu.view(uv.shape))
+    with pytest.raises(RuntimeError, match=r"grad must be \[B, C, \*S\] of uv's dtype for uv \[B, \*S, 2\]"):
+        kernel.sample_backward(tex, uv, g.view(2, 3, -1), 1, opts, need_texture=True, need_uv=True)
+    with pytest.raises(RuntimeError, match=r"uv must be contiguous \[B, \*S, 2\]"):
+        kernel.sample(tex, uv[..., :1].contiguous(), 1, opts)
+    with torch.no_grad():
+        plain = difftex.sample(tex, uv, filter="bicubic", wrap=("repeat", "mirror"))
+    graph = difftex.sample(tex.requires_grad_(), uv, filter="bicubic", wrap=("repeat", "mirror"))
+    assert torch.equal(plain, graph.detach())
 
 
 @pytest.mark.parametrize("C", [1, 2, 3, 5])

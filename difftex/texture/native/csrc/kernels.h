@@ -91,7 +91,8 @@ torch::Tensor raster_fragments_backward(torch::Tensor pos, torch::Tensor faces, 
 
 // single.cpp: the single-level reads (kind 0 nearest, 1 bilinear, 2
 // bicubic; wrap and border from opts) of texture [Bt, C, H, W] at uv
-// [B, M, 2] (Bt = 1 or B): forward -> [B, C, M]; first-order backward ->
+// [B, *S, 2] (Bt = 1 or B; S any pixel shape, M = prod(S) points an entry):
+// forward -> [B, C, *S]; first-order backward (grad [B, C, *S]) ->
 // (texture gradient, uv gradient), each undefined where not needed.
 torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, const ReadOptions& opts);
 std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, torch::Tensor uv, torch::Tensor grad,

@@ -97,7 +97,7 @@ DT_INLINE Line<taps_of<KIND>()> line(scalar_t u, int64_t n, int mode) {
 }
 
 // The shapes and pointers of one call: texture [Bt, C, H, W], points
-// p = b * M + e of uv [B, M, 2]; per-point arrays [B, C, M] (values,
+// p = b * M + e of uv [B, *S, 2], M = prod(S); per-point arrays [B, C, *S] (values,
 // output gradients). The texture (and its gradient, allocated like it) is
 // planar (contiguous) or interleaved (channels_last): texel (b, c, y, x) at
 // b * image + c * cs + y * rs + x * xs. Interleaved, a bilinear read touches
@@ -952,11 +952,25 @@ bool simd_read(int64_t kind, const torch::Tensor& texture) {
          texture.numel() < (int64_t(1) << 31);
 }
 
+// uv is [B, *S, 2] (the caller's pixel shape S, flattened nowhere): the points per batch entry, prod(S).
+int64_t points_of(const torch::Tensor& uv) {
+  int64_t m = 1;
+  for (int64_t d = 1; d + 1 < uv.dim(); ++d) m *= uv.size(d);
+  return m;
+}
+
+// [B, C, *S] for uv [B, *S, 2]: the output's and the output gradient's shape.
+std::vector<int64_t> out_shape(const torch::Tensor& uv, int64_t C) {
+  std::vector<int64_t> shape{uv.size(0), C};
+  for (int64_t d = 1; d + 1 < uv.dim(); ++d) shape.push_back(uv.size(d));
+  return shape;
+}
+
 template <typename scalar_t>
 Args<scalar_t> args_of(const torch::Tensor& texture, const torch::Tensor& uv, const ReadOptions& opts) {
   Args<scalar_t> A;
   A.Bt = texture.size(0); A.C = texture.size(1); A.H = texture.size(2); A.W = texture.size(3);
-  A.M = uv.size(1); A.image = A.C * A.H * A.W;
+  A.M = points_of(uv); A.image = A.C * A.H * A.W;
   A.cs = texture.stride(1); A.rs = texture.stride(2); A.xs = texture.stride(3);
   A.wrap_u = static_cast<int>(opts.wrap_u); A.wrap_v = static_cast<int>(opts.wrap_v);
   A.border = static_cast<scalar_t>(opts.border);
@@ -970,8 +984,8 @@ void check_inputs(const torch::Tensor& texture, const torch::Tensor& uv, int64_t
   TORCH_CHECK(texture.dim() == 4 && (texture.is_contiguous() || texture.is_contiguous(at::MemoryFormat::ChannelsLast)) &&
                   texture.device().is_cpu() && texture.size(1) >= 1 && texture.size(2) >= 1 && texture.size(3) >= 1,
               "sample: texture must be a contiguous or channels_last CPU tensor [Bt, C, H, W] with C, H, W >= 1");
-  TORCH_CHECK(uv.dim() == 3 && uv.size(2) == 2 && uv.is_contiguous() && uv.scalar_type() == texture.scalar_type(),
-              "sample: uv must be contiguous [B, M, 2] of the texture's dtype");
+  TORCH_CHECK(uv.dim() >= 2 && uv.size(-1) == 2 && uv.is_contiguous() && uv.scalar_type() == texture.scalar_type(),
+              "sample: uv must be contiguous [B, *S, 2] of the texture's dtype");
   TORCH_CHECK(texture.size(0) == 1 || texture.size(0) == uv.size(0),
               "sample: the texture batch must be 1 or uv's batch");
   TORCH_CHECK(texture.size(2) < (1 << 30) && texture.size(3) < (1 << 30),
@@ -992,8 +1006,8 @@ void with_kind(int64_t kind, F&& f) {
 
 torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, const ReadOptions& opts) {
   check_inputs(texture, uv, kind);
-  const int64_t B = uv.size(0), C = texture.size(1), M = uv.size(1);
-  auto out = torch::empty({B, C, M}, uv.options());
+  const int64_t B = uv.size(0), C = texture.size(1), M = points_of(uv);
+  auto out = torch::empty(out_shape(uv, C), uv.options());
   const bool simd = simd_read(kind, texture), wide = simd && wide_on();
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "sample_forward", [&] {
     const Args<scalar_t> A = args_of<scalar_t>(texture, uv, opts);
@@ -1021,10 +1035,10 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
                                                          int64_t kind, const ReadOptions& opts, bool need_texture,
                                                          bool need_uv) {
   check_inputs(texture, uv, kind);
-  const int64_t B = uv.size(0), Bt = texture.size(0), C = texture.size(1), H = texture.size(2), M = uv.size(1);
+  const int64_t B = uv.size(0), Bt = texture.size(0), C = texture.size(1), H = texture.size(2), M = points_of(uv);
   grad = grad.contiguous();
-  TORCH_CHECK(grad.dim() == 3 && grad.size(0) == B && grad.size(1) == C && grad.size(2) == M &&
-                  grad.scalar_type() == uv.scalar_type(), "sample_backward: grad must be [B, C, M] of uv's dtype");
+  TORCH_CHECK(grad.sizes() == at::IntArrayRef(out_shape(uv, C)) && grad.scalar_type() == uv.scalar_type(),
+              "sample_backward: grad must be [B, C, *S] of uv's dtype for uv [B, *S, 2]");
   need_uv = need_uv && kind != NEAREST;
   // Laid out like the texture (planar or interleaved): the kernels index both with the same strides.
   torch::Tensor gt = need_texture ? at::empty_strided(texture.sizes(), texture.strides(), texture.options()).zero_()
