@@ -740,6 +740,148 @@ __attribute__((target("avx2,fma"))) bool backward8(const int64_t* e, int64_t Cdy
   }
   return true;
 }
+
+constexpr int64_t kMaxTaps8 = 16;  // the most taps a point of backward_taps8 (its held scatter: 16 KB at C = 4)
+
+// The backward of eight points e[0..8) with N taps each (anisotropic, auto: count pc, axis pa; float32, the
+// channel count fixed at compile time): as backward_point, eight at a time; false, with nothing written,
+// where a coordinate is not finite, the eight have different tap counts or more than kMaxTaps8, or read
+// different levels. The taps are placed, read and differentiated as the N-tap forward does them, and each
+// point's level-gradient adds are held until all its taps are done, then made point by point in
+// backward_point's order (tap, level, channel, texel): a texel's sum, and every other result, has the scalar
+// loop's bits.
+template <int CC, bool kBorder>
+__attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const std::vector<Level>& L,
+                                                        const std::vector<const float*>& lp, const float* puv,
+                                                        const float* pd, const int64_t* pc, const float* pa,
+                                                        const float* pg, const Grads<float>& out, int64_t gsc,
+                                                        int64_t gsm, int64_t wrap_u, int64_t wrap_v, double border,
+                                                        bool nearest, bool d_grad) {
+  static_assert(CC > 0, "the held scatter is sized at compile time");
+  const int64_t N = tap_count(pc, e[0]);
+  if (N > kMaxTaps8) return false;
+  alignas(32) double u[8], v[8], au[8], av[8];
+  for (int j = 0; j < 8; ++j) {
+    u[j] = puv[2 * e[j]], v[j] = puv[2 * e[j] + 1];
+    if (tap_count(pc, e[j]) != N || !std::isfinite(u[j]) || !std::isfinite(v[j])) return false;
+    au[j] = pa[2 * e[j]], av[j] = pa[2 * e[j] + 1];
+  }
+  Reads r[8];
+  if (!reads8(pd, e, static_cast<int64_t>(L.size()), nearest, d_grad, r)) return false;
+  // Each tap's share of the output gradient; points whose share is 0 in every channel write nothing.
+  __m256 g[CC];
+  __m256 any = _mm256_setzero_ps();
+  const __m256 nf = _mm256_set1_ps(static_cast<float>(N));
+  for (int c = 0; c < CC; ++c) {
+    alignas(32) float gc[8];
+    for (int j = 0; j < 8; ++j) gc[j] = pg[c * gsc + e[j] * gsm];
+    g[c] = _mm256_div_ps(_mm256_load_ps(gc), nf);
+    any = _mm256_or_ps(any, _mm256_cmp_ps(g[c], _mm256_setzero_ps(), _CMP_NEQ_UQ));
+  }
+  const int live = _mm256_movemask_ps(any);
+  if (live == 0) return true;
+  const int n = r[0].n;
+  alignas(32) double wt[2][8], dwt[2][8];
+  __m256 wl[2];
+  for (int jr = 0; jr < n; ++jr) {
+    alignas(32) float wlf[8];
+    for (int j = 0; j < 8; ++j) wt[jr][j] = r[j].wt[jr], dwt[jr][j] = r[j].dwt[jr], wlf[j] = static_cast<float>(wt[jr][j]);
+    wl[jr] = _mm256_load_ps(wlf);
+  }
+  const __m256 bv = _mm256_set1_ps(static_cast<float>(border)), one = _mm256_set1_ps(1.0f);
+  const __m256d zero = _mm256_setzero_pd();
+  __m256d du[2], dv[2], dD[2], dax[2], day[2];
+  for (int h = 0; h < 2; ++h) du[h] = dv[h] = dD[h] = dax[h] = day[h] = zero;
+  alignas(32) int32_t idx[kMaxTaps8][2][4][8], in[kMaxTaps8][2][4][8];
+  alignas(32) float share[kMaxTaps8][2][CC][4][8];
+  for (int64_t i = 0; i < N; ++i) {
+    const double o = tap_offset(i, N);
+    alignas(32) double tu[8], tv[8];
+    for (int j = 0; j < 8; ++j) tu[j] = u[j] + o * au[j], tv[j] = v[j] + o * av[j];
+    __m256d tdu[2] = {zero, zero}, tdv[2] = {zero, zero};
+    for (int jr = 0; jr < n; ++jr) {
+      const int64_t k = r[0].k[jr];
+      const Level& lv = L[k];
+      Place8 px, py;
+      place8(tu, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
+      place8(tv, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
+      const Quad8 t = quad8(px, py, static_cast<int32_t>(lv.w));
+      const __m256 fx = to_ps(px.f[0], px.f[1]), fy = to_ps(py.f[0], py.f[1]);
+      const __m256 gx = _mm256_sub_ps(one, fx), gy = _mm256_sub_ps(one, fy);
+      const __m256 w[4] = {_mm256_mul_ps(gx, gy), _mm256_mul_ps(fx, gy), _mm256_mul_ps(gx, fy), _mm256_mul_ps(fx, fy)};
+      const bool held = out.gp[k] != nullptr;
+      if (held)
+        for (int q = 0; q < 4; ++q) {
+          _mm256_store_si256(reinterpret_cast<__m256i*>(idx[i][jr][q]), t.idx[q]);
+          if (kBorder) _mm256_store_si256(reinterpret_cast<__m256i*>(in[i][jr][q]), t.in[q]);
+        }
+      __m256 sx = _mm256_setzero_ps(), sy = _mm256_setzero_ps(), sv = _mm256_setzero_ps();
+      for (int c = 0; c < CC; ++c) {
+        const float* pp = lp[k] + c * lv.plane;
+        __m256 tq[4];
+        for (int q = 0; q < 4; ++q) tq[q] = tap8<kBorder>(pp, t, q, bv);
+        const __m256 ex = _mm256_add_ps(_mm256_mul_ps(gy, _mm256_sub_ps(tq[1], tq[0])),
+                                        _mm256_mul_ps(fy, _mm256_sub_ps(tq[3], tq[2])));
+        const __m256 ey = _mm256_add_ps(_mm256_mul_ps(gx, _mm256_sub_ps(tq[2], tq[0])),
+                                        _mm256_mul_ps(fx, _mm256_sub_ps(tq[3], tq[1])));
+        __m256 ev = _mm256_mul_ps(w[0], tq[0]);
+        for (int q = 1; q < 4; ++q) ev = _mm256_add_ps(ev, _mm256_mul_ps(w[q], tq[q]));
+        sx = _mm256_add_ps(sx, _mm256_mul_ps(g[c], ex));
+        sy = _mm256_add_ps(sy, _mm256_mul_ps(g[c], ey));
+        sv = _mm256_add_ps(sv, _mm256_mul_ps(g[c], ev));
+        if (held) {
+          const __m256 gw = _mm256_mul_ps(g[c], wl[jr]);
+          for (int q = 0; q < 4; ++q) _mm256_store_ps(share[i][jr][c][q], _mm256_mul_ps(gw, w[q]));
+        }
+      }
+      // tdu += wt * sx * slope * w_k, dD += dwt * sv, in double as backward_point
+      const __m256d nw = _mm256_set1_pd(static_cast<double>(lv.w)), nh = _mm256_set1_pd(static_cast<double>(lv.h));
+      const __m128 hx[2] = {_mm256_castps256_ps128(sx), _mm256_extractf128_ps(sx, 1)};
+      const __m128 hy[2] = {_mm256_castps256_ps128(sy), _mm256_extractf128_ps(sy, 1)};
+      const __m128 hv[2] = {_mm256_castps256_ps128(sv), _mm256_extractf128_ps(sv, 1)};
+      for (int h = 0; h < 2; ++h) {
+        const __m256d a = _mm256_load_pd(wt[jr] + 4 * h), da = _mm256_load_pd(dwt[jr] + 4 * h);
+        tdu[h] = _mm256_add_pd(tdu[h], _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(a, _mm256_cvtps_pd(hx[h])), px.slope[h]), nw));
+        tdv[h] = _mm256_add_pd(tdv[h], _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(a, _mm256_cvtps_pd(hy[h])), py.slope[h]), nh));
+        dD[h] = _mm256_add_pd(dD[h], _mm256_mul_pd(da, _mm256_cvtps_pd(hv[h])));
+      }
+    }
+    const __m256d o4 = _mm256_set1_pd(o);
+    for (int h = 0; h < 2; ++h) {
+      du[h] = _mm256_add_pd(du[h], tdu[h]);
+      dv[h] = _mm256_add_pd(dv[h], tdv[h]);
+      dax[h] = _mm256_add_pd(dax[h], _mm256_mul_pd(o4, tdu[h]));
+      day[h] = _mm256_add_pd(day[h], _mm256_mul_pd(o4, tdv[h]));
+    }
+  }
+  for (int j = 0; j < 8; ++j) {
+    if (!(live >> j & 1)) continue;
+    for (int64_t i = 0; i < N; ++i)
+      for (int jr = 0; jr < n; ++jr) {
+        float* gk = out.gp[r[0].k[jr]];
+        if (gk == nullptr) continue;
+        const int64_t plane = L[r[0].k[jr]].plane;
+        for (int c = 0; c < CC; ++c)
+          for (int q = 0; q < 4; ++q)
+            if (!kBorder || in[i][jr][q][j]) gk[c * plane + idx[i][jr][q][j]] += share[i][jr][c][q][j];
+      }
+  }
+  alignas(32) double res[5][8];
+  for (int h = 0; h < 2; ++h) {
+    _mm256_store_pd(res[0] + 4 * h, du[h]);
+    _mm256_store_pd(res[1] + 4 * h, dv[h]);
+    _mm256_store_pd(res[2] + 4 * h, dD[h]);
+    _mm256_store_pd(res[3] + 4 * h, dax[h]);
+    _mm256_store_pd(res[4] + 4 * h, day[h]);
+  }
+  for (int j = 0; j < 8; ++j) {
+    if (!(live >> j & 1)) continue;
+    if (out.uv) out.uv[2 * e[j]] = static_cast<float>(res[0][j]), out.uv[2 * e[j] + 1] = static_cast<float>(res[1][j]);
+    if (out.D) out.D[e[j]] = static_cast<float>(res[2][j]);
+    if (out.axis) out.axis[2 * e[j]] = static_cast<float>(res[3][j]), out.axis[2 * e[j] + 1] = static_cast<float>(res[4][j]);
+  }
+  return true;
+}
 #endif
 
 #if DT_HAVE_AVX2
@@ -855,7 +997,7 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
   torch::Tensor guv = need_uv ? torch::zeros({M, 2}, uv.options()) : torch::Tensor();
   torch::Tensor gD = need_D ? torch::zeros({M}, uv.options()) : torch::Tensor();
   torch::Tensor gax = need_axis ? torch::zeros({M, 2}, uv.options()) : torch::Tensor();
-  const bool simd = simd_taps(uv, count, levels);
+  const bool simd = simd_taps(uv, count, levels), simd_n = simd_levels(uv, levels) && count.numel() != 0;
   AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_backward", [&] {
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
@@ -923,6 +1065,12 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
             if (!backward8<CC, kB>(idx + i, C, L, lp, puv, pd, pg, out, gsc, gsm, wrap_u, wrap_v, border, nearest,
                                    d_grad))
               for (int j = 0; j < 8; ++j) one(idx[i + j]);
+          }
+          if constexpr (CC > 0) {
+            for (; simd_n && i + 8 <= n; i += 8)
+              if (!backward_taps8<CC, kB>(idx + i, L, lp, puv, pd, pc, pa, pg, out, gsc, gsm, wrap_u, wrap_v, border,
+                                          nearest, d_grad))
+                for (int j = 0; j < 8; ++j) one(idx[i + j]);
           }
         }
 #endif
