@@ -99,52 +99,71 @@ inline int64_t band_of(int64_t r, int64_t h, int64_t nb) { return r * nb / h; }
 // classes[band] its class; the classes run in order, the bands of one
 // class in parallel (grouped by point count, so that threads get similar
 // work), each band's points in index order. Below `serial_below` points a
-// class runs on one thread.
+// class runs on one thread. The points are sorted by band once (a stable
+// counting sort in fixed chunks, threaded); each group then walks its own
+// bands' points. Bands of one class never write the same texel, so the
+// order between them is free, and a texel's sums keep their order.
 template <typename Work>
 void run_banded(const int32_t* keys, int64_t M, const std::vector<int32_t>& classes, Work&& work,
                 int64_t serial_below = 1024) {
   const int64_t nbands = static_cast<int64_t>(classes.size());
   const int64_t T = std::max<int64_t>(1, at::get_num_threads());
-  std::vector<int64_t> counts(nbands, 0);
-  {
-    std::vector<std::vector<int64_t>> local(T, std::vector<int64_t>(nbands, 0));
-    at::parallel_for(0, M, 1 << 15, [&](int64_t lo, int64_t hi) {
-      auto& h = local[std::min<int64_t>(at::get_thread_num(), T - 1)];
-      for (int64_t e = lo; e < hi; ++e)
+  // Fixed chunks of points, so that the sort's order does not depend on which thread takes which chunk.
+  const int64_t chunks = std::max<int64_t>(1, std::min<int64_t>(T, M >> 15));
+  const int64_t step = (M + chunks - 1) / chunks;
+  std::vector<int64_t> hist(chunks * nbands, 0);  // hist[c * nbands + b]: chunk c's points in band b
+  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+    for (int64_t c = c0; c < c1; ++c) {
+      int64_t* h = hist.data() + c * nbands;
+      for (int64_t e = c * step, end = std::min(M, e + step); e < end; ++e)
         if (keys[e] >= 0) ++h[keys[e]];
-    });
-    for (const auto& h : local)
-      for (int64_t b = 0; b < nbands; ++b) counts[b] += h[b];
+    }
+  });
+  // start[b]: band b's first slot in `order`; hist becomes each chunk's first slot in each band.
+  std::vector<int64_t> start(nbands + 1, 0);
+  for (int64_t b = 0; b < nbands; ++b) {
+    int64_t at = start[b];
+    for (int64_t c = 0; c < chunks; ++c) {
+      const int64_t n = hist[c * nbands + b];
+      hist[c * nbands + b] = at;
+      at += n;
+    }
+    start[b + 1] = at;
   }
+  std::vector<int64_t> order(start[nbands]);
+  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+    for (int64_t c = c0; c < c1; ++c) {
+      int64_t* slot = hist.data() + c * nbands;
+      for (int64_t e = c * step, end = std::min(M, e + step); e < end; ++e)
+        if (keys[e] >= 0) order[slot[keys[e]]++] = e;
+    }
+  });
   int32_t P = 0;
   for (int32_t c : classes) P = std::max(P, c + 1);
-  // owner[b + 1]: the group that runs band b in the current class, -1 elsewhere (owner[0] for key -1).
-  std::vector<int32_t> owner(nbands + 1);
+  std::vector<int64_t> bands;  // the current class's bands with points, in order
+  std::vector<int64_t> first;  // first[g]: group g's first entry of `bands`
   for (int32_t p = 0; p < P; ++p) {
-    int64_t total = 0, busy = 0;
+    int64_t total = 0;
+    bands.clear();
     for (int64_t b = 0; b < nbands; ++b)
-      if (classes[b] == p && counts[b]) total += counts[b], ++busy;
+      if (classes[b] == p && start[b + 1] > start[b]) total += start[b + 1] - start[b], bands.push_back(b);
     if (total == 0) continue;
+    const int64_t busy = static_cast<int64_t>(bands.size());
     const int64_t G = total < serial_below ? 1 : std::min(T, busy);
-    std::fill(owner.begin(), owner.end(), -1);
+    // Contiguous runs of bands of about total / G points each.
+    first.assign(G + 1, busy);
     int64_t before = 0;
-    for (int64_t b = 0; b < nbands; ++b) {
-      if (classes[b] != p || !counts[b]) continue;
-      // Contiguous runs of bands of about total / G points each.
-      owner[b + 1] = static_cast<int32_t>(std::min<int64_t>(G - 1, (before + counts[b] / 2) * G / total));
-      before += counts[b];
+    for (int64_t i = 0, g = 0; i < busy; ++i) {
+      const int64_t n = start[bands[i] + 1] - start[bands[i]];
+      const int64_t own = std::min<int64_t>(G - 1, (before + n / 2) * G / total);
+      while (g <= own) first[g++] = i;
+      before += n;
     }
-    const int32_t* own = owner.data() + 1;
     at::parallel_for(0, G, 1, [&](int64_t g0, int64_t g1) {
-      int64_t idx[256];  // the group's points go to work in short runs (blocks of the kernels)
-      int64_t n = 0;
-      for (int64_t g = g0; g < g1; ++g)
-        for (int64_t e = 0; e < M; ++e)
-          if (own[keys[e]] == g) {
-            idx[n++] = e;
-            if (n == 256) work(static_cast<const int64_t*>(idx), n), n = 0;
-          }
-      if (n) work(static_cast<const int64_t*>(idx), n);
+      for (int64_t i = first[g0]; i < first[g1]; ++i)
+        // The points go to work in short runs (blocks of the kernels).
+        for (int64_t s = start[bands[i]], end = start[bands[i] + 1]; s < end; s += 256)
+          work(static_cast<const int64_t*>(order.data() + s), std::min<int64_t>(256, end - s));
     });
   }
 }
