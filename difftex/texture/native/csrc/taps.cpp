@@ -636,6 +636,53 @@ __attribute__((target("avx2,fma"))) void prefetch8(const int64_t* e, int64_t C, 
   }
 }
 
+// One level's part of eight points' backward (backward8, backward_taps8), as backward_point does it: the
+// taps at (u, v) on level lv (texels p) read per channel; du, dv and dD get wt * sum_c g_c * d value / d u
+// (times the fold slope and the level's width), likewise along v, and dwt * sum_c g_c * value, in double;
+// where share is given, share[c][q] gets channel c's texel-gradient shares g_c * wl * w_q. Returns the taps.
+template <bool kBorder>
+DT_AVX2 Quad8 level_grads8(const double* u, const double* v, const Level& lv, const float* p, int64_t C,
+                           int64_t wrap_u, int64_t wrap_v, const __m256* g, __m256 wl, __m256 bv, const double* wt,
+                           const double* dwt, float (*share)[4][8], __m256d* du, __m256d* dv, __m256d* dD) {
+  const __m256 one = _mm256_set1_ps(1.0f);
+  Place8 px, py;
+  place8(u, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
+  place8(v, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
+  const Quad8 t = quad8(px, py, static_cast<int32_t>(lv.w));
+  const __m256 fx = to_ps(px.f[0], px.f[1]), fy = to_ps(py.f[0], py.f[1]);
+  const __m256 gx = _mm256_sub_ps(one, fx), gy = _mm256_sub_ps(one, fy);
+  const __m256 w[4] = {_mm256_mul_ps(gx, gy), _mm256_mul_ps(fx, gy), _mm256_mul_ps(gx, fy), _mm256_mul_ps(fx, fy)};
+  __m256 sx = _mm256_setzero_ps(), sy = _mm256_setzero_ps(), sv = _mm256_setzero_ps();
+  for (int64_t c = 0; c < C; ++c) {
+    const float* pp = p + c * lv.plane;
+    __m256 tq[4];
+    for (int q = 0; q < 4; ++q) tq[q] = tap8<kBorder>(pp, t, q, bv);
+    const __m256 ex = _mm256_add_ps(_mm256_mul_ps(gy, _mm256_sub_ps(tq[1], tq[0])),
+                                    _mm256_mul_ps(fy, _mm256_sub_ps(tq[3], tq[2])));
+    const __m256 ey = _mm256_add_ps(_mm256_mul_ps(gx, _mm256_sub_ps(tq[2], tq[0])),
+                                    _mm256_mul_ps(fx, _mm256_sub_ps(tq[3], tq[1])));
+    __m256 ev = _mm256_mul_ps(w[0], tq[0]);
+    for (int q = 1; q < 4; ++q) ev = _mm256_add_ps(ev, _mm256_mul_ps(w[q], tq[q]));
+    sx = _mm256_add_ps(sx, _mm256_mul_ps(g[c], ex));
+    sy = _mm256_add_ps(sy, _mm256_mul_ps(g[c], ey));
+    sv = _mm256_add_ps(sv, _mm256_mul_ps(g[c], ev));
+    if (share == nullptr) continue;
+    const __m256 gw = _mm256_mul_ps(g[c], wl);
+    for (int q = 0; q < 4; ++q) _mm256_storeu_ps(share[c][q], _mm256_mul_ps(gw, w[q]));
+  }
+  const __m256d nw = _mm256_set1_pd(static_cast<double>(lv.w)), nh = _mm256_set1_pd(static_cast<double>(lv.h));
+  const __m128 hx[2] = {_mm256_castps256_ps128(sx), _mm256_extractf128_ps(sx, 1)};
+  const __m128 hy[2] = {_mm256_castps256_ps128(sy), _mm256_extractf128_ps(sy, 1)};
+  const __m128 hv[2] = {_mm256_castps256_ps128(sv), _mm256_extractf128_ps(sv, 1)};
+  for (int h = 0; h < 2; ++h) {
+    const __m256d a = _mm256_loadu_pd(wt + 4 * h), da = _mm256_loadu_pd(dwt + 4 * h);
+    du[h] = _mm256_add_pd(du[h], _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(a, _mm256_cvtps_pd(hx[h])), px.slope[h]), nw));
+    dv[h] = _mm256_add_pd(dv[h], _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(a, _mm256_cvtps_pd(hy[h])), py.slope[h]), nh));
+    dD[h] = _mm256_add_pd(dD[h], _mm256_mul_pd(da, _mm256_cvtps_pd(hv[h])));
+  }
+  return t;
+}
+
 template <int CC, bool kBorder>
 __attribute__((target("avx2,fma"))) bool backward8(const int64_t* e, int64_t Cdyn, const std::vector<Level>& L,
                                                    const std::vector<const float*>& lp, const float* puv,
@@ -665,66 +712,33 @@ __attribute__((target("avx2,fma"))) bool backward8(const int64_t* e, int64_t Cdy
   }
   const int live = _mm256_movemask_ps(any);
   if (live == 0) return true;
-  const __m256 bv = _mm256_set1_ps(static_cast<float>(border)), one = _mm256_set1_ps(1.0f);
+  const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
   __m256d du[2], dv[2], dD[2];
   for (int h = 0; h < 2; ++h) du[h] = dv[h] = dD[h] = _mm256_setzero_pd();
+  std::vector<float> sheap(CC > 0 ? 0 : C * 32);
+  alignas(32) float sstack[CMAX][4][8];
+  float(*share)[4][8] = CC > 0 ? sstack : reinterpret_cast<float(*)[4][8]>(sheap.data());
   for (int jr = 0; jr < r[0].n; ++jr) {
     const int64_t k = r[0].k[jr];
-    const Level& lv = L[k];
-    Place8 px, py;
-    place8(u, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
-    place8(v, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
-    const Quad8 t = quad8(px, py, static_cast<int32_t>(lv.w));
-    const __m256 fx = to_ps(px.f[0], px.f[1]), fy = to_ps(py.f[0], py.f[1]);
-    const __m256 gx = _mm256_sub_ps(one, fx), gy = _mm256_sub_ps(one, fy);
-    const __m256 w[4] = {_mm256_mul_ps(gx, gy), _mm256_mul_ps(fx, gy), _mm256_mul_ps(gx, fy), _mm256_mul_ps(fx, fy)};
     alignas(32) double wt[8], dwt[8];
-    for (int j = 0; j < 8; ++j) wt[j] = r[j].wt[jr], dwt[j] = r[j].dwt[jr];
     alignas(32) float wlf[8];
-    for (int j = 0; j < 8; ++j) wlf[j] = static_cast<float>(wt[j]);
-    const __m256 wl = _mm256_load_ps(wlf);
-    alignas(32) int32_t idx[4][8], in[4][8];
+    for (int j = 0; j < 8; ++j) wt[j] = r[j].wt[jr], dwt[j] = r[j].dwt[jr], wlf[j] = static_cast<float>(wt[j]);
     float* gk = out.gp[k];
-    if (gk != nullptr)
-      for (int q = 0; q < 4; ++q) {
-        _mm256_store_si256(reinterpret_cast<__m256i*>(idx[q]), t.idx[q]);
-        if (kBorder) _mm256_store_si256(reinterpret_cast<__m256i*>(in[q]), t.in[q]);
-      }
-    __m256 sx = _mm256_setzero_ps(), sy = _mm256_setzero_ps(), sv = _mm256_setzero_ps();
+    const Quad8 t = level_grads8<kBorder>(u, v, L[k], lp[k], C, wrap_u, wrap_v, g, _mm256_load_ps(wlf), bv, wt, dwt,
+                                          gk != nullptr ? share : nullptr, du, dv, dD);
+    if (gk == nullptr) continue;
+    alignas(32) int32_t idx[4][8], in[4][8];
+    for (int q = 0; q < 4; ++q) {
+      _mm256_store_si256(reinterpret_cast<__m256i*>(idx[q]), t.idx[q]);
+      if (kBorder) _mm256_store_si256(reinterpret_cast<__m256i*>(in[q]), t.in[q]);
+    }
     for (int64_t c = 0; c < C; ++c) {
-      const float* pp = lp[k] + c * lv.plane;
-      __m256 tq[4];
-      for (int q = 0; q < 4; ++q) tq[q] = tap8<kBorder>(pp, t, q, bv);
-      const __m256 ex = _mm256_add_ps(_mm256_mul_ps(gy, _mm256_sub_ps(tq[1], tq[0])),
-                                      _mm256_mul_ps(fy, _mm256_sub_ps(tq[3], tq[2])));
-      const __m256 ey = _mm256_add_ps(_mm256_mul_ps(gx, _mm256_sub_ps(tq[2], tq[0])),
-                                      _mm256_mul_ps(fx, _mm256_sub_ps(tq[3], tq[1])));
-      __m256 ev = _mm256_mul_ps(w[0], tq[0]);
-      for (int q = 1; q < 4; ++q) ev = _mm256_add_ps(ev, _mm256_mul_ps(w[q], tq[q]));
-      sx = _mm256_add_ps(sx, _mm256_mul_ps(g[c], ex));
-      sy = _mm256_add_ps(sy, _mm256_mul_ps(g[c], ey));
-      sv = _mm256_add_ps(sv, _mm256_mul_ps(g[c], ev));
-      if (gk == nullptr) continue;
-      alignas(32) float share[4][8];
-      const __m256 gw = _mm256_mul_ps(g[c], wl);
-      for (int q = 0; q < 4; ++q) _mm256_store_ps(share[q], _mm256_mul_ps(gw, w[q]));
-      float* gq = gk + c * lv.plane;
+      float* gq = gk + c * L[k].plane;
       for (int j = 0; j < 8; ++j) {
         if (!(live >> j & 1)) continue;
         for (int q = 0; q < 4; ++q)
-          if (!kBorder || in[q][j]) gq[idx[q][j]] += share[q][j];
+          if (!kBorder || in[q][j]) gq[idx[q][j]] += share[c][q][j];
       }
-    }
-    // tdu = wt * sx * slope * w_k, dD += dwt * sv, in double as backward_point
-    const __m256d nw = _mm256_set1_pd(static_cast<double>(lv.w)), nh = _mm256_set1_pd(static_cast<double>(lv.h));
-    const __m128 hx[2] = {_mm256_castps256_ps128(sx), _mm256_extractf128_ps(sx, 1)};
-    const __m128 hy[2] = {_mm256_castps256_ps128(sy), _mm256_extractf128_ps(sy, 1)};
-    const __m128 hv[2] = {_mm256_castps256_ps128(sv), _mm256_extractf128_ps(sv, 1)};
-    for (int h = 0; h < 2; ++h) {
-      const __m256d a = _mm256_load_pd(wt + 4 * h), da = _mm256_load_pd(dwt + 4 * h);
-      du[h] = _mm256_add_pd(du[h], _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(a, _mm256_cvtps_pd(hx[h])), px.slope[h]), nw));
-      dv[h] = _mm256_add_pd(dv[h], _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(a, _mm256_cvtps_pd(hy[h])), py.slope[h]), nh));
-      dD[h] = _mm256_add_pd(dD[h], _mm256_mul_pd(da, _mm256_cvtps_pd(hv[h])));
     }
   }
   alignas(32) double ou[8], ov[8], oD[8];
@@ -788,7 +802,7 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
     for (int j = 0; j < 8; ++j) wt[jr][j] = r[j].wt[jr], dwt[jr][j] = r[j].dwt[jr], wlf[j] = static_cast<float>(wt[jr][j]);
     wl[jr] = _mm256_load_ps(wlf);
   }
-  const __m256 bv = _mm256_set1_ps(static_cast<float>(border)), one = _mm256_set1_ps(1.0f);
+  const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
   const __m256d zero = _mm256_setzero_pd();
   __m256d du[2], dv[2], dD[2], dax[2], day[2];
   for (int h = 0; h < 2; ++h) du[h] = dv[h] = dD[h] = dax[h] = day[h] = zero;
@@ -801,50 +815,14 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
     __m256d tdu[2] = {zero, zero}, tdv[2] = {zero, zero};
     for (int jr = 0; jr < n; ++jr) {
       const int64_t k = r[0].k[jr];
-      const Level& lv = L[k];
-      Place8 px, py;
-      place8(tu, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
-      place8(tv, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
-      const Quad8 t = quad8(px, py, static_cast<int32_t>(lv.w));
-      const __m256 fx = to_ps(px.f[0], px.f[1]), fy = to_ps(py.f[0], py.f[1]);
-      const __m256 gx = _mm256_sub_ps(one, fx), gy = _mm256_sub_ps(one, fy);
-      const __m256 w[4] = {_mm256_mul_ps(gx, gy), _mm256_mul_ps(fx, gy), _mm256_mul_ps(gx, fy), _mm256_mul_ps(fx, fy)};
       const bool held = out.gp[k] != nullptr;
+      const Quad8 t = level_grads8<kBorder>(tu, tv, L[k], lp[k], CC, wrap_u, wrap_v, g, wl[jr], bv, wt[jr], dwt[jr],
+                                            held ? share[i][jr] : nullptr, tdu, tdv, dD);
       if (held)
         for (int q = 0; q < 4; ++q) {
           _mm256_store_si256(reinterpret_cast<__m256i*>(idx[i][jr][q]), t.idx[q]);
           if (kBorder) _mm256_store_si256(reinterpret_cast<__m256i*>(in[i][jr][q]), t.in[q]);
         }
-      __m256 sx = _mm256_setzero_ps(), sy = _mm256_setzero_ps(), sv = _mm256_setzero_ps();
-      for (int c = 0; c < CC; ++c) {
-        const float* pp = lp[k] + c * lv.plane;
-        __m256 tq[4];
-        for (int q = 0; q < 4; ++q) tq[q] = tap8<kBorder>(pp, t, q, bv);
-        const __m256 ex = _mm256_add_ps(_mm256_mul_ps(gy, _mm256_sub_ps(tq[1], tq[0])),
-                                        _mm256_mul_ps(fy, _mm256_sub_ps(tq[3], tq[2])));
-        const __m256 ey = _mm256_add_ps(_mm256_mul_ps(gx, _mm256_sub_ps(tq[2], tq[0])),
-                                        _mm256_mul_ps(fx, _mm256_sub_ps(tq[3], tq[1])));
-        __m256 ev = _mm256_mul_ps(w[0], tq[0]);
-        for (int q = 1; q < 4; ++q) ev = _mm256_add_ps(ev, _mm256_mul_ps(w[q], tq[q]));
-        sx = _mm256_add_ps(sx, _mm256_mul_ps(g[c], ex));
-        sy = _mm256_add_ps(sy, _mm256_mul_ps(g[c], ey));
-        sv = _mm256_add_ps(sv, _mm256_mul_ps(g[c], ev));
-        if (held) {
-          const __m256 gw = _mm256_mul_ps(g[c], wl[jr]);
-          for (int q = 0; q < 4; ++q) _mm256_store_ps(share[i][jr][c][q], _mm256_mul_ps(gw, w[q]));
-        }
-      }
-      // tdu += wt * sx * slope * w_k, dD += dwt * sv, in double as backward_point
-      const __m256d nw = _mm256_set1_pd(static_cast<double>(lv.w)), nh = _mm256_set1_pd(static_cast<double>(lv.h));
-      const __m128 hx[2] = {_mm256_castps256_ps128(sx), _mm256_extractf128_ps(sx, 1)};
-      const __m128 hy[2] = {_mm256_castps256_ps128(sy), _mm256_extractf128_ps(sy, 1)};
-      const __m128 hv[2] = {_mm256_castps256_ps128(sv), _mm256_extractf128_ps(sv, 1)};
-      for (int h = 0; h < 2; ++h) {
-        const __m256d a = _mm256_load_pd(wt[jr] + 4 * h), da = _mm256_load_pd(dwt[jr] + 4 * h);
-        tdu[h] = _mm256_add_pd(tdu[h], _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(a, _mm256_cvtps_pd(hx[h])), px.slope[h]), nw));
-        tdv[h] = _mm256_add_pd(tdv[h], _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(a, _mm256_cvtps_pd(hy[h])), py.slope[h]), nh));
-        dD[h] = _mm256_add_pd(dD[h], _mm256_mul_pd(da, _mm256_cvtps_pd(hv[h])));
-      }
     }
     const __m256d o4 = _mm256_set1_pd(o);
     for (int h = 0; h < 2; ++h) {
