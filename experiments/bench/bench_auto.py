@@ -54,13 +54,15 @@ with 0 auto equals anisotropic wherever the minor axis is at least half a texel.
 * Within 0.5 dB of anisotropic 16 on every scene above (worst -0.33 dB, the 5-degree spot plane), never
   more taps. On these scenes that leaves little to save: anisotropic's taps are nearly all needed for its
   accuracy, so auto takes 0-3 % fewer taps and its time is anisotropic's within this machine's noise
-  (forward+backward in experiments/studies/speed_vs_accuracy.py's runs: median 1.00-1.02x; single scenes 0.90-1.36x, the outliers on different scenes from run to run). It saves where footprints are magnified below half a texel (one read instead of anisotropic's two) or round:
+  (forward+backward in experiments/studies/speed_vs_accuracy.py's runs: mean over scenes 1.02-1.04x; single scenes 0.79-1.36x, the outliers on different scenes from run to run). It saves where footprints are magnified below half a texel (one read instead of anisotropic's two) or round:
   on a sphere magnified 4x (not in the table) auto reads half of anisotropic's taps, 56.7 vs 64.3 dB.
 * Issue 19's target (0.7x anisotropic-16's forward+backward in the mean over these scenes, within 0.5 dB
   on each) is out of reach of any choice among the filters difftex has: in one run
-  (docs/speed_vs_accuracy.md, its last table) trilinear alone, one tap a pixel, is 0.59x and 14-24 dB short
+  (docs/speed_vs_accuracy.md, its last table) trilinear alone, one tap a pixel, is 0.72x and 14-24 dB short
   on the grazing planes, and the cheapest single filter within 0.5 dB, picked per scene with hindsight
-  (bilinear, trilinear, anisotropic 2-16, ripmap or sat), averages 0.87x. A per-pixel mix pays every
+  (bilinear, trilinear, anisotropic 2-16, ripmap or sat), averages 0.90x. (Before the N-tap forward and
+  backward read eight points at a time, anisotropic-16 was slower and these were 0.59x and 0.87x: the faster
+  the taps, the more of every filter's time is the per-call work they share.) A per-pixel mix pays every
   filter's per-call work (pyramid, table) on top.
 * What the first version gave away: with tolerance 0.25 it took 7-10 % fewer taps on grazing planes but
   fell 2.1 dB under anisotropic 16 on the closed-form checker plane at 5 degrees (1.2 dB on the spot
