@@ -15,10 +15,9 @@ tap, not two.
 
 Given a plain texture (``TexturePyramid``) rather than a ``Mipmap``, the
 pyramid is built and every level read inside one autograd node
-(``_PyramidRead``; on the kernel, ``_NativeTaps`` with ``build``), whose
-backward folds the levels' texture gradients into one another in place: one
-gradient buffer per level read, where separate nodes would allocate (and on
-CPU page-fault) a second, summed, copy of each.
+(``_PyramidRead``), whose backward folds the levels' texture gradients into
+one another in place: one gradient buffer per level read, where separate
+nodes would allocate (and on CPU page-fault) a second, summed, copy of each.
 
 Flat layout: one texture's levels ``[1, C, H_k, W_k]``, points ``[M, ...]``,
 result ``[C, M]``; ``difftex.sample`` does batching and checks.
@@ -136,52 +135,40 @@ class _NativeTaps(torch.autograd.Function):
     """``trilinear_points`` on the native CPU kernel (``difftex.texture.native``).
 
     uv [M, 2], D [M], axis [M, 2] and count [M] int64 (or both None: one tap
-    a point), levels ``[1, C, H_k, W_k]`` -> [C, M]. With ``build`` = n > 0
-    the one tensor after it is a texture, whose n-level pyramid the node
-    builds itself: the kernel's level gradients are then its own buffers,
-    and the pyramid's adjoint folds them into the texture's gradient in
-    place (no level-sized buffer a step, which a separate pyramid node
-    allocates and page-faults for every level).
+    a point), levels ``[1, C, H_k, W_k]`` -> [C, M].
     """
 
     @staticmethod
-    def forward(ctx, uv: Tensor, D: Tensor, axis: Tensor | None, count: Tensor | None, opts: tuple, build: int,
-                *inputs: Tensor) -> Tensor:
+    def forward(ctx, uv: Tensor, D: Tensor, axis: Tensor | None, count: Tensor | None, opts: tuple,
+                *levels: Tensor) -> Tensor:
         wrap_u, wrap_v, border, nearest = opts
         # Where D needs a gradient, an integer D = k > 0 reads level k - 1 too (mip_blend does the same).
         ctx.d_grad = ctx.needs_input_grad[1]
-        ctx.opts, ctx.build = opts, build
+        ctx.opts = opts
         ctx.taps = axis is not None
-        ctx.save_for_backward(uv, D, axis, count, *inputs)
-        ctx.levels = build_levels(inputs[0], build) if build else None  # forward runs without a graph
+        ctx.save_for_backward(uv, D, axis, count, *levels)
         kernel = native.load()
         ctx.read = kernel.ReadOptions(wrap_u=WRAP_CODES[wrap_u], wrap_v=WRAP_CODES[wrap_v], border=border,
                                       nearest=nearest, d_grad=ctx.d_grad)
-        return kernel.forward(*_native_args(ctx.levels or inputs, uv, D, axis, count), ctx.read)
+        return kernel.forward(*_native_args(levels, uv, D, axis, count), ctx.read)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        uv, D, axis, count, *inputs = ctx.saved_tensors
-        levels = ctx.levels or inputs
+        uv, D, axis, count, *levels = ctx.saved_tensors
         wrap_u, wrap_v, border, nearest = ctx.opts
         need = ctx.needs_input_grad
-        need_uv, need_D, need_axis, need_in = need[0], need[1] and not nearest, need[2], need[6:]
+        need_uv, need_D, need_axis, need_levels = need[0], need[1] and not nearest, need[2], need[5:]
         if torch.is_grad_enabled():
             # Double backward (create_graph=True): the differentiable torch path.
-            source = (lambda: build_levels(inputs[0], ctx.build)) if ctx.build else (lambda: inputs)
             return native.double_backward(
-                lambda: _torch_taps(source(), uv, D, wrap_u, wrap_v, border, nearest, axis, count),
-                (uv, D, axis, None, None, None, *inputs), need, grad)
+                lambda: _torch_taps(levels, uv, D, wrap_u, wrap_v, border, nearest, axis, count),
+                (uv, D, axis, None, None, *levels), need, grad)
         kernel = native.load()
         gl, guv, gD, gax = kernel.backward(
             *_native_args(levels, uv, D, axis, count), grad, ctx.read,
-            kernel.TapNeeds(levels=any(need_in), uv=need_uv, D=need_D, axis=need_axis and ctx.taps))
-        if ctx.build:
-            grads = native.level_grads(gl, [need_in[0]] * len(levels), levels)
-            rest = (pyramid_adjoint(list(grads), tuple(inputs[0].shape[-2:]), inplace=True) if need_in[0] else None,)
-        else:
-            rest = native.level_grads(gl, need_in, levels)
-        return (guv, gD if need_D else None, gax if need_axis and ctx.taps else None, None, None, None, *rest)
+            kernel.TapNeeds(levels=any(need_levels), uv=need_uv, D=need_D, axis=need_axis and ctx.taps))
+        return (guv, gD if need_D else None, gax if need_axis and ctx.taps else None, None, None,
+                *native.level_grads(gl, need_levels, levels))
 
 
 def _native_args(levels, uv: Tensor, D: Tensor, axis: Tensor | None, count: Tensor | None) -> tuple:
@@ -282,10 +269,8 @@ def trilinear_points(levels: Levels, uv: Tensor, D: Tensor, wrap_u: str, wrap_v:
     built, else (and on CUDA, and as the tests' reference) the torch path.
     """
     if native.kernel(uv) is not None:
-        opts = (wrap_u, wrap_v, float(border), nearest_mip)
-        if isinstance(levels, TexturePyramid):
-            return _NativeTaps.apply(uv, D, axis, count, opts, len(levels), levels.texture)
-        return _NativeTaps.apply(uv, D, axis, count, opts, 0, *levels)
+        lv = build_levels(levels.texture, len(levels)) if isinstance(levels, TexturePyramid) else list(levels)
+        return _NativeTaps.apply(uv, D, axis, count, (wrap_u, wrap_v, float(border), nearest_mip), *lv)
     # A non-finite uv reads a safe point and gets NaN put back, as the kernel
     # and ewa_points do: its NaN value would otherwise meet a zero upstream
     # gradient in mip_blend's d/dD (0 * NaN) and send NaN to uv_dx / uv_dy /

@@ -107,14 +107,10 @@ def step_adjoint(fine: Tensor | None, coarse: Tensor, fine_hw: tuple[int, int], 
         return adj if fine is None else (fine.add_(adj) if inplace else fine + adj)
     kernel = native.kernel(coarse)
     # One pass that writes the fine gradient once (bit-identical; measured 2.2-2.5x faster than the nearest
-    # upsampling below at 512^2 -> 1024^2 x 3), in place into a given contiguous buffer (the whole chain of a
-    # 1024^2 x 3 texture's adjoint in 2.6 ms against 3.4 out of place and 8.0 by the in-place broadcast add
-    # below, one thread). Not under create_graph: the kernel is not differentiable.
-    if kernel is not None and (inplace or not torch.is_grad_enabled()):
-        if fine is None or not inplace:
-            return kernel.box2_adjoint(coarse, fine)
-        if fine.is_contiguous():
-            return kernel.box2_adjoint(coarse, fine, into_fine=True)
+    # upsampling below at 512^2 -> 1024^2 x 3). Not under create_graph (the kernel is not differentiable), nor
+    # to add into a given buffer in place, which the broadcast add below already does in one pass.
+    if kernel is not None and (fine is None if inplace else not torch.is_grad_enabled()):
+        return kernel.box2_adjoint(coarse, fine)
     if fine is None:
         # Nearest 2x upsampling: 1.7x faster on CPU than a broadcast copy
         # (measured, 512^2 -> 1024^2); in place, the 1/4 needs no new buffer.

@@ -39,10 +39,7 @@ torch::Tensor box2(torch::Tensor x) {
 // undefined reading as zeros. The same sums as the torch path
 // (bit-identical), in one pass that writes the fine gradient once: torch's
 // nearest upsampling took 2.2-2.5x as long at 512^2 -> 1024^2 x 3.
-// into_fine adds into fine itself (the caller's own buffer, contiguous): no
-// level-sized buffer is allocated, whose first touch cost about 1 ms at
-// 1024^2 x 3 (page faults and the kernel's zeroing).
-torch::Tensor box2_adjoint(torch::Tensor coarse, c10::optional<torch::Tensor> fine, bool into_fine) {
+torch::Tensor box2_adjoint(torch::Tensor coarse, c10::optional<torch::Tensor> fine) {
   TORCH_CHECK(coarse.dim() >= 2 && coarse.device().is_cpu(), "mip_read.box2_adjoint: expected a CPU tensor [..., h, w]");
   coarse = coarse.contiguous();
   const int64_t h = coarse.size(-2), w = coarse.size(-1), W = 2 * w;
@@ -56,8 +53,7 @@ torch::Tensor box2_adjoint(torch::Tensor coarse, c10::optional<torch::Tensor> fi
                     fine->device().is_cpu(), "mip_read.box2_adjoint: fine must be [..., 2h, 2w] of coarse's dtype");
     f = fine->contiguous();
   }
-  TORCH_CHECK(!into_fine || (add && fine->is_contiguous()), "mip_read.box2_adjoint: into_fine needs a contiguous fine");
-  auto out = into_fine ? f : torch::empty(sizes, coarse.options());
+  auto out = torch::empty(sizes, coarse.options());
   const int64_t rows = coarse.numel() / w;  // coarse rows over every plane
   AT_DISPATCH_FLOATING_TYPES(coarse.scalar_type(), "mip_read_box2_adjoint", [&] {
     const scalar_t* pc = coarse.data_ptr<scalar_t>();

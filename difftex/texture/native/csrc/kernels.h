@@ -51,8 +51,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, 
 
 // box.cpp: one 2 x 2 box step of the pyramid.
 torch::Tensor box2(torch::Tensor x);
-// box2_adjoint: fine + the transpose of box2 applied to coarse; into_fine writes it into fine (contiguous).
-torch::Tensor box2_adjoint(torch::Tensor coarse, c10::optional<torch::Tensor> fine, bool into_fine);
+torch::Tensor box2_adjoint(torch::Tensor coarse, c10::optional<torch::Tensor> fine);
 
 // ewa.cpp: EWA, forward [C, M] and first-order backward.
 torch::Tensor ewa(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor sigma, torch::Tensor minor,

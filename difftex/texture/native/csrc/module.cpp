@@ -74,9 +74,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("sigma"), py::arg("minor"), py::arg("scale"), py::arg("D"), py::arg("grad"), py::arg("full_h"),
         py::arg("full_w"), py::arg("opts"), py::arg("need"));
   m.def("box2", &box2, "2 x 2 box step of an even level", py::arg("x"));
-  m.def("box2_adjoint", &box2_adjoint,
-        "transpose of box2: fine + coarse / 4 on each 2 x 2 block (fine None: zeros; into_fine: written into fine)",
-        py::arg("coarse"), py::arg("fine") = py::none(), py::arg("into_fine") = false);
+  m.def("box2_adjoint", &box2_adjoint, "transpose of box2: fine + coarse / 4 on each 2 x 2 block (fine None: zeros)",
+        py::arg("coarse"), py::arg("fine") = py::none());
   m.def("front", &front, "mip level (and anisotropic / auto tap axis and count), no gradient", py::arg("dx"),
         py::arg("dy"), py::arg("bias"), py::kw_only(), py::arg("bias0"), py::arg("height"), py::arg("width"),
         py::arg("levels"), py::arg("kind"), py::arg("max_aniso"), py::arg("tolerance"));
