@@ -280,12 +280,13 @@ def test_the_eight_point_taps_read_as_the_scalar_loop_and_the_reference(filter):
 
 
 @pytest.mark.skipif(not SIMD, reason="this CPU has no AVX2 / FMA")
-@pytest.mark.parametrize("filter", ["trilinear", "nearest-mip"])
+@pytest.mark.parametrize("filter", ["trilinear", "nearest-mip", "anisotropic", "auto"])
 def test_the_eight_point_band_keys_give_the_scalar_keys(filter):
-    # float32 one-tap reads key their points for the banded scatter four at a time (taps.cpp tap_keys4; not
-    # for mirror along v). 8100 points over several levels and band scales, far uv, a NaN and an inf: any key
-    # other than the scalar one reorders a texel's sums, so both paths must give the same bits, at one and
-    # two threads, and the reference's values within 1e-5.
+    # float32 reads key their points for the banded scatter four at a time (taps.cpp tap_keys4; not for mirror
+    # along v): one tap each, or N along the axis, whose v range sets the rows. 8100 points over several levels
+    # and band scales, 1-16 taps, far uv, taps spread over more than a period, a NaN and an inf: any key other
+    # than the scalar one reorders a texel's sums, so both paths must give the same bits, at one and two
+    # threads, and (one tap) the reference's values within 1e-5.
     g = torch.Generator().manual_seed(9)
     tex = torch.rand(1, 3, 64, 48, generator=g)
     uv = torch.rand(1, 90, 90, 2, generator=g) * 3 - 1
@@ -314,6 +315,10 @@ def test_the_eight_point_band_keys_give_the_scalar_keys(filter):
         for other in (run("native", False, 2, wrap), run("native", True, 1, wrap)):
             for a, b in zip(fast, other):
                 assert torch.equal(a.nan_to_num(), b.nan_to_num()), wrap
+        if filter in ("anisotropic", "auto"):
+            # The kernel places taps along the axis in double, the reference in float32: at v ~ 1e5 they read
+            # other texels (the two are compared on ordinary uv in the test above).
+            continue
         ref = run("reference", True, 2, wrap)
         s = max(1.0, ref[1].abs().max().item())
         torch.testing.assert_close(fast[1], ref[1], atol=1e-5 * s, rtol=1e-5)

@@ -863,24 +863,27 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
 #endif
 
 #if DT_HAVE_AVX2
-// tap_key of the one-tap points [lo, hi) (float32; trilinear / nearest-mip), four at a time in double, for
-// wrap_v repeat, clamp or border: where a point is finite, |v| < 2^31 and its rows fit a scale's bands, the
-// key is tap_key's (the same double arithmetic: rows floor(v h - 0.5) - 1 .. + 2 on each level read, the
-// band floor(a nb / h), exact as every product is an integer under 2^53, at the finest scale that holds the
-// rows) and its levels are marked in rd; the other points go to key_of. Measured: tap_key one point at a
-// time was 13 % of a one-thread trilinear forward+backward, this 3.7 %.
+// tap_key of the points [lo, hi) (float32; one tap each, or count pc along axis pa), four at a time in
+// double, for wrap_v repeat, clamp or border: where a point is finite, its taps' v range [v - r, v + r]
+// (r = |a_v| (1/2 - 1/(2N)), 0 for one tap) lies within |v| < 2^31 (and within a period for repeat) and its
+// rows fit a scale's bands, the key is tap_key's (the same double arithmetic: rows floor(lo h - 0.5) - 1 ..
+// floor(hi h - 0.5) + 2 on each level read, the band floor(a nb / h), exact as every product is an integer
+// under 2^53, at the finest scale that holds the rows) and its levels are marked in rd; the other points go
+// to key_of. Measured: tap_key one point at a time was 13 % of a one-thread trilinear forward+backward,
+// this 3.7 %.
 // (Templated on the pointers' type, as the float64 instantiation of the caller names it too; only float runs.)
 template <typename S, typename KeyOf>
 __attribute__((target("avx2,fma"))) void tap_keys4(int64_t lo, int64_t hi, const S* puv_s, const S* pd_s,
-                                                   const double* hd, int64_t K, bool nearest, bool d_grad,
-                                                   int wrap_v, const ScaleBands& T, int32_t* keys, char* rd,
-                                                   KeyOf key_of) {
+                                                   const int64_t* pc, const S* pa_s, const double* hd, int64_t K,
+                                                   bool nearest, bool d_grad, int wrap_v, const ScaleBands& T,
+                                                   int32_t* keys, char* rd, KeyOf key_of) {
   const __m256d zero = _mm256_setzero_pd(), one = _mm256_set1_pd(1.0), half = _mm256_set1_pd(0.5);
   const __m256d top = _mm256_set1_pd(static_cast<double>(K - 1)), big = _mm256_set1_pd(2147483648.0);
   const __m256d two = _mm256_set1_pd(2.0), abs_mask = _mm256_castsi256_pd(_mm256_set1_epi64x(INT64_MAX));
   const __m256i deal = _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7);
   const bool repeat = wrap_v == REPEAT;
   const float *puv = reinterpret_cast<const float*>(puv_s), *pd = reinterpret_cast<const float*>(pd_s);
+  const float* pa = reinterpret_cast<const float*>(pa_s);
   int64_t e = lo;
   for (; e + 4 <= hi; e += 4) {
     const __m256 uv = _mm256_permutevar8x32_ps(_mm256_loadu_ps(puv + 2 * e), deal);
@@ -905,11 +908,32 @@ __attribute__((target("avx2,fma"))) void tap_keys4(int64_t lo, int64_t hi, const
     }
     const __m128i i0 = _mm256_cvttpd_epi32(k0), i1 = _mm256_cvttpd_epi32(k1);
     const __m256d h0 = _mm256_i32gather_pd(hd, i0, 8), h1 = _mm256_i32gather_pd(hd, i1, 8);
-    const __m256d v = repeat ? _mm256_sub_pd(v0, _mm256_floor_pd(v0)) : v0;
-    // rows_of: a = floor(v h - 0.5) - 1, b = a + 3, clamped to [0, h - 1] but for repeat
-    __m256d a0 = _mm256_sub_pd(_mm256_floor_pd(_mm256_sub_pd(_mm256_mul_pd(v, h0), half)), one);
-    __m256d a1 = _mm256_sub_pd(_mm256_floor_pd(_mm256_sub_pd(_mm256_mul_pd(v, h1), half)), one);
-    __m256d b0 = _mm256_add_pd(a0, _mm256_set1_pd(3.0)), b1 = _mm256_add_pd(a1, _mm256_set1_pd(3.0));
+    // The taps' v range [vl, vh] as tap_key computes it: v -+ r, then (repeat) both less floor(v).
+    __m256d vl = v0, vh = v0;
+    if (pc != nullptr) {
+      const __m256d n = _mm256_setr_pd(static_cast<double>(pc[e]), static_cast<double>(pc[e + 1]),
+                                       static_cast<double>(pc[e + 2]), static_cast<double>(pc[e + 3]));
+      const __m256d av = _mm256_cvtps_pd(_mm256_extractf128_ps(_mm256_permutevar8x32_ps(_mm256_loadu_ps(pa + 2 * e),
+                                                                                        deal), 1));
+      __m256d r = _mm256_mul_pd(_mm256_and_pd(av, abs_mask), _mm256_sub_pd(half, _mm256_div_pd(half, n)));
+      r = _mm256_and_pd(r, _mm256_cmp_pd(n, one, _CMP_GT_OQ));  // one tap (N <= 1): 0
+      vl = _mm256_sub_pd(v0, r);
+      vh = _mm256_add_pd(v0, r);
+      // finite, |vl|, |vh| < 2^31 (NaN fails), and within a period for repeat
+      ok = _mm256_and_pd(ok, _mm256_and_pd(_mm256_cmp_pd(_mm256_and_pd(vl, abs_mask), big, _CMP_LT_OQ),
+                                           _mm256_cmp_pd(_mm256_and_pd(vh, abs_mask), big, _CMP_LT_OQ)));
+      if (repeat) ok = _mm256_and_pd(ok, _mm256_cmp_pd(_mm256_sub_pd(vh, vl), one, _CMP_LT_OQ));
+    }
+    if (repeat) {
+      const __m256d s = _mm256_floor_pd(v0);
+      vl = _mm256_sub_pd(vl, s);
+      vh = _mm256_sub_pd(vh, s);
+    }
+    // rows_of: a = floor(vl h - 0.5) - 1, b = floor(vh h - 0.5) + 2, clamped to [0, h - 1] but for repeat
+    __m256d a0 = _mm256_sub_pd(_mm256_floor_pd(_mm256_sub_pd(_mm256_mul_pd(vl, h0), half)), one);
+    __m256d a1 = _mm256_sub_pd(_mm256_floor_pd(_mm256_sub_pd(_mm256_mul_pd(vl, h1), half)), one);
+    __m256d b0 = _mm256_add_pd(_mm256_floor_pd(_mm256_sub_pd(_mm256_mul_pd(vh, h0), half)), two);
+    __m256d b1 = _mm256_add_pd(_mm256_floor_pd(_mm256_sub_pd(_mm256_mul_pd(vh, h1), half)), two);
     if (!repeat) {
       const __m256d l0 = _mm256_sub_pd(h0, one), l1 = _mm256_sub_pd(h1, one);
       a0 = _mm256_min_pd(_mm256_max_pd(a0, zero), l0); b0 = _mm256_min_pd(_mm256_max_pd(b0, zero), l0);
@@ -1006,12 +1030,12 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
       std::vector<char> read;
 #if DT_HAVE_AVX2
       if constexpr (std::is_same_v<scalar_t, float>) {
-        if (simd && wrap_v != MIRROR && bands.scales > 0) {
+        if ((simd || simd_n) && wrap_v != MIRROR && bands.scales > 0) {
           std::vector<double> hd(K);
           for (int64_t k = 0; k < K; ++k) hd[k] = static_cast<double>(L[k].h);
           read = band_key_ranges(M, K, keys, [&](int64_t lo, int64_t hi, int32_t* out, char* rd) {
-            tap_keys4(lo, hi, puv, pd, hd.data(), K, nearest, d_grad, static_cast<int>(wrap_v), bands, out, rd,
-                      key_of);
+            tap_keys4(lo, hi, puv, pd, pc, pa, hd.data(), K, nearest, d_grad, static_cast<int>(wrap_v), bands, out,
+                      rd, key_of);
           });
         }
       }
