@@ -239,8 +239,9 @@ def test_the_vector_paths_read_as_the_scalar_loop_and_the_reference(filter):
 @pytest.mark.parametrize("filter", ["trilinear", "nearest-mip", "anisotropic", "auto"])
 def test_the_eight_point_taps_read_as_the_scalar_loop_and_the_reference(filter):
     # 2 x 12 x 16 points on a 20 x 24 texture: the first rows share one footprint, 4:1 (groups of eight on the
-    # same levels with one tap count: the eight-point paths, one tap or four), the others have a random one
-    # each (groups on mixed levels and counts: the scalar loop); a NaN inside a group; uv up to a texture past
+    # same levels with one tap count: the eight-point paths, one tap or four), the next ones the same two
+    # levels with 4-8 taps (the N-tap paths' groups with mixed counts), the others a random one each (groups on mixed
+    # levels: the scalar loop); a NaN inside a group; uv up to a texture past
     # each edge; gradients to texture, uv and both derivatives (through the level). Both paths give the same
     # bits, so grouping cannot change a result.
     g = torch.Generator().manual_seed(5)
@@ -249,6 +250,10 @@ def test_the_eight_point_taps_read_as_the_scalar_loop_and_the_reference(filter):
     dx = torch.randn(2, 12, 16, 2, generator=g) * 0.1
     dy = torch.randn(2, 12, 16, 2, generator=g) * 0.1
     dx[:, :6], dy[:, :6] = torch.tensor([0.16, 0.02]), torch.tensor([-0.01, 0.04])
+    # Rows 6-8: levels 1 and 2 for all (a 3-texel minor axis), 4-8 taps a point: groups of eight with mixed counts.
+    stretch = 1 + torch.rand(2, 3, 16, generator=g)
+    dx[:, 6:9] = torch.stack((0.5 * stretch, torch.zeros_like(stretch)), -1)
+    dy[:, 6:9] = torch.tensor([0.0, 0.15])
     uv[1, 3, 4, 1] = float("nan")
     kernel = native.load()
 

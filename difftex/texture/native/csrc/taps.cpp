@@ -193,14 +193,12 @@ DT_AVX2 bool reads8(const float* pd, const int64_t* e, int64_t K, bool nearest, 
   return true;
 }
 
-// Whether the points [e, e + 8) go through a forward's eight-point path: finite uv, one tap count (pc; null:
-// one tap each) and the same levels (their reads in r).
-DT_AVX2 bool group_reads8(int64_t e, const float* puv, const float* pd, const int64_t* pc, int64_t K, bool nearest,
-                          bool d_grad, Reads* r) {
-  const int64_t N = tap_count(pc, e);
+// Whether the points [e, e + 8) go through a forward's eight-point path: finite uv and the same levels (their
+// reads in r).
+DT_AVX2 bool group_reads8(int64_t e, const float* puv, const float* pd, int64_t K, bool nearest, bool d_grad,
+                          Reads* r) {
   for (int j = 0; j < 8; ++j)
-    if (tap_count(pc, e + j) != N || !std::isfinite(puv[2 * (e + j)]) || !std::isfinite(puv[2 * (e + j) + 1]))
-      return false;
+    if (!std::isfinite(puv[2 * (e + j)]) || !std::isfinite(puv[2 * (e + j) + 1])) return false;
   return reads8(pd + e, nullptr, K, nearest, d_grad, r);
 }
 
@@ -240,7 +238,7 @@ DT_AVX2 void prepare_taps8(int64_t e, int64_t C, const std::vector<Level>& L, co
                            const float* puv, const float* pd, int64_t wrap_u, int64_t wrap_v, bool nearest,
                            bool d_grad, TapGroup8& g) {
   Reads r[8];
-  g.vec = group_reads8(e, puv, pd, nullptr, static_cast<int64_t>(L.size()), nearest, d_grad, r);
+  g.vec = group_reads8(e, puv, pd, static_cast<int64_t>(L.size()), nearest, d_grad, r);
   if (!g.vec) return;
   alignas(32) double u[8], v[8];
   for (int j = 0; j < 8; ++j) u[j] = puv[2 * (e + j)], v[j] = puv[2 * (e + j) + 1];
@@ -330,10 +328,10 @@ __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t 
 }
 
 // The forward of points [lo, hi) with N taps each (anisotropic, auto: count pc, axis pa), float32, eight
-// points at a time where the eight have one tap count and read the same levels (most groups: both follow the
-// footprint); the channel count fixed at compile time (CC > 0). Tap i of each point is placed as the scalar
-// loop places it (u + o_i * axis in double, then fold and place) and the sums run in its order, so a point
-// gives the same bits on either path. Other groups, the tail and CC = 0 go through the scalar loop.
+// points at a time where the eight read the same levels (most groups: the level follows the footprint); the
+// channel count fixed at compile time (CC > 0). Tap i runs in the lanes with i < N_j. It is placed as the
+// scalar loop places it (u + o_i * axis in double, then fold and place) and the sums run in its order, so a
+// point gives the same bits on either path. Other groups, the tail and CC = 0 go through the scalar loop.
 // Measured on a 1024^2 RGB texture, 512^2 points, 4 taps a point: an anisotropic forward call in 0.50x the
 // scalar loop's time on one thread and on two, auto in 0.54x.
 template <int CC, bool kBorder>
@@ -347,22 +345,32 @@ __attribute__((target("avx2,fma"))) void forward_taps_avx2(int64_t lo, int64_t h
   const int64_t K = static_cast<int64_t>(L.size());
   int64_t e = lo;
   for (; CC > 0 && e + 8 <= hi; e += 8) {
-    const int64_t N = tap_count(pc, e);
     Reads r[8];
-    if (!group_reads8(e, puv, pd, pc, K, nearest, d_grad, r)) {
+    if (!group_reads8(e, puv, pd, K, nearest, d_grad, r)) {
       forward_range<float, CC, kBorder>(e, e + 8, CC, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border,
                                         nearest, d_grad);
       continue;
     }
+    alignas(32) int64_t N[8];
+    alignas(32) float nfl[8];
+    int64_t most = 0, fewest = std::numeric_limits<int64_t>::max();
+    for (int j = 0; j < 8; ++j) {
+      N[j] = tap_count(pc, e + j);
+      nfl[j] = static_cast<float>(N[j]);
+      most = std::max(most, N[j]), fewest = std::min(fewest, N[j]);
+    }
     __m256 acc[CC > 0 ? CC : 1];
     for (int c = 0; c < CC; ++c) acc[c] = _mm256_setzero_ps();
-    for (int64_t i = 0; i < N; ++i) {
-      const double o = tap_offset(i, N);
+    for (int64_t i = 0; i < most; ++i) {
       alignas(32) double tu[8], tv[8];
+      alignas(32) int32_t on[8];  // lanes with a tap i: all ones
       for (int j = 0; j < 8; ++j) {
+        const double o = tap_offset(i, N[j]);
         tu[j] = static_cast<double>(puv[2 * (e + j)]) + o * static_cast<double>(pa[2 * (e + j)]);
         tv[j] = static_cast<double>(puv[2 * (e + j) + 1]) + o * static_cast<double>(pa[2 * (e + j) + 1]);
+        on[j] = i < N[j] ? -1 : 0;
       }
+      const __m256 mask = _mm256_castsi256_ps(_mm256_load_si256(reinterpret_cast<const __m256i*>(on)));
       for (int jr = 0; jr < r[0].n; ++jr) {
         const Level& lv = L[r[0].k[jr]];
         Place8 px, py;
@@ -376,11 +384,11 @@ __attribute__((target("avx2,fma"))) void forward_taps_avx2(int64_t lo, int64_t h
           const float* pp = p + c * lv.plane;
           __m256 s = _mm256_setzero_ps();
           for (int q = 0; q < 4; ++q) s = _mm256_add_ps(s, _mm256_mul_ps(w[q], tap8<kBorder>(pp, t, q, bv)));
-          acc[c] = _mm256_add_ps(acc[c], s);
+          acc[c] = i < fewest ? _mm256_add_ps(acc[c], s) : _mm256_blendv_ps(acc[c], _mm256_add_ps(acc[c], s), mask);
         }
       }
     }
-    const __m256 n = _mm256_set1_ps(static_cast<float>(N));
+    const __m256 n = _mm256_load_ps(nfl);
     for (int c = 0; c < CC; ++c) _mm256_storeu_ps(po + c * M + e, _mm256_div_ps(acc[c], n));
   }
   if (e < hi)
@@ -638,12 +646,14 @@ __attribute__((target("avx2,fma"))) void prefetch8(const int64_t* e, int64_t C, 
 
 // One level's part of eight points' backward (backward8, backward_taps8), as backward_point does it: the
 // taps at (u, v) on level lv (texels p) read per channel; du, dv and dD get wt * sum_c g_c * d value / d u
-// (times the fold slope and the level's width), likewise along v, and dwt * sum_c g_c * value, in double;
-// where share is given, share[c][q] gets channel c's texel-gradient shares g_c * wl * w_q. Returns the taps.
+// (times the fold slope and the level's width), likewise along v, and dwt * sum_c g_c * value, in double
+// (dD only in the lanes of mask, two halves, where given); where share is given, share[c][q] gets channel
+// c's texel-gradient shares g_c * wl * w_q. Returns the taps.
 template <bool kBorder>
 DT_AVX2 Quad8 level_grads8(const double* u, const double* v, const Level& lv, const float* p, int64_t C,
                            int64_t wrap_u, int64_t wrap_v, const __m256* g, __m256 wl, __m256 bv, const double* wt,
-                           const double* dwt, float (*share)[4][8], __m256d* du, __m256d* dv, __m256d* dD) {
+                           const double* dwt, float (*share)[4][8], __m256d* du, __m256d* dv, __m256d* dD,
+                           const __m256d* mask = nullptr) {
   const __m256 one = _mm256_set1_ps(1.0f);
   Place8 px, py;
   place8(u, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
@@ -678,7 +688,8 @@ DT_AVX2 Quad8 level_grads8(const double* u, const double* v, const Level& lv, co
     const __m256d a = _mm256_loadu_pd(wt + 4 * h), da = _mm256_loadu_pd(dwt + 4 * h);
     du[h] = _mm256_add_pd(du[h], _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(a, _mm256_cvtps_pd(hx[h])), px.slope[h]), nw));
     dv[h] = _mm256_add_pd(dv[h], _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(a, _mm256_cvtps_pd(hy[h])), py.slope[h]), nh));
-    dD[h] = _mm256_add_pd(dD[h], _mm256_mul_pd(da, _mm256_cvtps_pd(hv[h])));
+    const __m256d sum = _mm256_add_pd(dD[h], _mm256_mul_pd(da, _mm256_cvtps_pd(hv[h])));
+    dD[h] = mask == nullptr ? sum : _mm256_blendv_pd(dD[h], sum, mask[h]);
   }
   return t;
 }
@@ -757,10 +768,11 @@ __attribute__((target("avx2,fma"))) bool backward8(const int64_t* e, int64_t Cdy
 
 constexpr int64_t kMaxTaps8 = 16;  // the most taps a point of backward_taps8 (its held scatter: 16 KB at C = 4)
 
-// The backward of eight points e[0..8) with N taps each (anisotropic, auto: count pc, axis pa; float32, the
+// The backward of eight points e[0..8) with N_j taps each (anisotropic, auto: count pc, axis pa; float32, the
 // channel count fixed at compile time): as backward_point, eight at a time; false, with nothing written,
-// where a coordinate is not finite, the eight have different tap counts or more than kMaxTaps8, or read
-// different levels. The taps are placed, read and differentiated as the N-tap forward does them, and each
+// where a coordinate is not finite, a point has more than kMaxTaps8 taps, or the eight read different
+// levels. Tap i runs in the lanes with i < N_j (the others' sums are left as they are). The taps are placed,
+// read and differentiated as the N-tap forward does them, and each
 // point's level-gradient adds are held until all its taps are done, then made point by point in
 // backward_point's order (tap, level, channel, texel): a texel's sum, and every other result, has the scalar
 // loop's bits.
@@ -772,20 +784,24 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
                                                         int64_t gsm, int64_t wrap_u, int64_t wrap_v, double border,
                                                         bool nearest, bool d_grad) {
   static_assert(CC > 0, "the held scatter is sized at compile time");
-  const int64_t N = tap_count(pc, e[0]);
-  if (N > kMaxTaps8) return false;
   alignas(32) double u[8], v[8], au[8], av[8];
+  alignas(32) int64_t N[8];
+  alignas(32) float nfl[8];
+  int64_t most = 0;
   for (int j = 0; j < 8; ++j) {
     u[j] = puv[2 * e[j]], v[j] = puv[2 * e[j] + 1];
-    if (tap_count(pc, e[j]) != N || !std::isfinite(u[j]) || !std::isfinite(v[j])) return false;
+    N[j] = tap_count(pc, e[j]);
+    if (N[j] > kMaxTaps8 || !std::isfinite(u[j]) || !std::isfinite(v[j])) return false;
     au[j] = pa[2 * e[j]], av[j] = pa[2 * e[j] + 1];
+    nfl[j] = static_cast<float>(N[j]);
+    most = std::max(most, N[j]);
   }
   Reads r[8];
   if (!reads8(pd, e, static_cast<int64_t>(L.size()), nearest, d_grad, r)) return false;
   // Each tap's share of the output gradient; points whose share is 0 in every channel write nothing.
   __m256 g[CC];
   __m256 any = _mm256_setzero_ps();
-  const __m256 nf = _mm256_set1_ps(static_cast<float>(N));
+  const __m256 nf = _mm256_load_ps(nfl);
   for (int c = 0; c < CC; ++c) {
     alignas(32) float gc[8];
     for (int j = 0; j < 8; ++j) gc[j] = pg[c * gsc + e[j] * gsm];
@@ -808,33 +824,39 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
   for (int h = 0; h < 2; ++h) du[h] = dv[h] = dD[h] = dax[h] = day[h] = zero;
   alignas(32) int32_t idx[kMaxTaps8][2][4][8], in[kMaxTaps8][2][4][8];
   alignas(32) float share[kMaxTaps8][2][CC][4][8];
-  for (int64_t i = 0; i < N; ++i) {
-    const double o = tap_offset(i, N);
-    alignas(32) double tu[8], tv[8];
-    for (int j = 0; j < 8; ++j) tu[j] = u[j] + o * au[j], tv[j] = v[j] + o * av[j];
+  for (int64_t i = 0; i < most; ++i) {
+    alignas(32) double o[8], tu[8], tv[8];
+    alignas(32) int64_t on[8];  // lanes with a tap i: all ones
+    for (int j = 0; j < 8; ++j) {
+      o[j] = tap_offset(i, N[j]);
+      tu[j] = u[j] + o[j] * au[j], tv[j] = v[j] + o[j] * av[j];
+      on[j] = i < N[j] ? -1 : 0;
+    }
+    const __m256d mask[2] = {_mm256_load_pd(reinterpret_cast<const double*>(on)),
+                             _mm256_load_pd(reinterpret_cast<const double*>(on + 4))};
     __m256d tdu[2] = {zero, zero}, tdv[2] = {zero, zero};
     for (int jr = 0; jr < n; ++jr) {
       const int64_t k = r[0].k[jr];
       const bool held = out.gp[k] != nullptr;
       const Quad8 t = level_grads8<kBorder>(tu, tv, L[k], lp[k], CC, wrap_u, wrap_v, g, wl[jr], bv, wt[jr], dwt[jr],
-                                            held ? share[i][jr] : nullptr, tdu, tdv, dD);
+                                            held ? share[i][jr] : nullptr, tdu, tdv, dD, mask);
       if (held)
         for (int q = 0; q < 4; ++q) {
           _mm256_store_si256(reinterpret_cast<__m256i*>(idx[i][jr][q]), t.idx[q]);
           if (kBorder) _mm256_store_si256(reinterpret_cast<__m256i*>(in[i][jr][q]), t.in[q]);
         }
     }
-    const __m256d o4 = _mm256_set1_pd(o);
     for (int h = 0; h < 2; ++h) {
-      du[h] = _mm256_add_pd(du[h], tdu[h]);
-      dv[h] = _mm256_add_pd(dv[h], tdv[h]);
-      dax[h] = _mm256_add_pd(dax[h], _mm256_mul_pd(o4, tdu[h]));
-      day[h] = _mm256_add_pd(day[h], _mm256_mul_pd(o4, tdv[h]));
+      const __m256d o4 = _mm256_load_pd(o + 4 * h);
+      du[h] = _mm256_blendv_pd(du[h], _mm256_add_pd(du[h], tdu[h]), mask[h]);
+      dv[h] = _mm256_blendv_pd(dv[h], _mm256_add_pd(dv[h], tdv[h]), mask[h]);
+      dax[h] = _mm256_blendv_pd(dax[h], _mm256_add_pd(dax[h], _mm256_mul_pd(o4, tdu[h])), mask[h]);
+      day[h] = _mm256_blendv_pd(day[h], _mm256_add_pd(day[h], _mm256_mul_pd(o4, tdv[h])), mask[h]);
     }
   }
   for (int j = 0; j < 8; ++j) {
     if (!(live >> j & 1)) continue;
-    for (int64_t i = 0; i < N; ++i)
+    for (int64_t i = 0; i < N[j]; ++i)
       for (int jr = 0; jr < n; ++jr) {
         float* gk = out.gp[r[0].k[jr]];
         if (gk == nullptr) continue;
