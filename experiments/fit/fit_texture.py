@@ -415,6 +415,7 @@ def main(argv: list[str] | None = None) -> None:
         path = make_capture(args.make_capture, args.res, args.views, args.seed, args.target_filter, args.batch)
         print(f"wrote {path} and {args.views} images")
         return
+    ok = False
     try:
         if args.capture:
             if not args.mesh:
@@ -434,9 +435,9 @@ def main(argv: list[str] | None = None) -> None:
         if m:
             print(json.dumps(m, indent=2))
             print(f"wrote {out}/{written}")
+        ok = True
     finally:
-        if torch.distributed.is_initialized():
-            torch.distributed.destroy_process_group()
+        runtime.teardown(ok)
 
 
 if __name__ == "__main__":
