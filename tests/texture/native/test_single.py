@@ -135,6 +135,30 @@ def test_the_kernel_reads_any_pixel_shape_in_place(dtype, path):
     assert torch.equal(plain, graph.detach())
 
 
+@pytest.mark.parametrize("S", [(19, 45), (8, 32), (3, 100), (40, 31), (1, 70), (2, 3, 33)], ids=str)
+@pytest.mark.parametrize("B, Bt", [(2, 2), (3, 1)])
+def test_a_two_d_pixel_shape_read_tile_by_tile_gives_the_points_in_order(S, B, Bt, path):
+    # The vector forwards read [B, ..., Ho, Wo, 2] in tiles of 8 rows by 32 points (csrc/single.cpp, Tiles):
+    # here heights and widths that are not multiples of the tile, a width under 32 and a single row (read in
+    # order), and a 3-D pixel shape. Every point is written once, with the flat list's bits; a NaN stays in
+    # its pixel; the values are the reference's.
+    kernel = native.load()
+    g = torch.Generator().manual_seed(sum(S))
+    tex = torch.rand(Bt, 3, 37, 29, generator=g)
+    uv = torch.rand(B, *S, 2, generator=g) * 3 - 1
+    uv.view(B, -1, 2)[B - 1, uv[0].numel() // 4 - 3, 1] = float("nan")
+    opts = kernel.ReadOptions(wrap_u=WRAP_CODES["mirror"], wrap_v=WRAP_CODES["clamp"], border=0.0)
+    for kind, filter in ((1, "bilinear"), (2, "bicubic")):
+        out = kernel.sample(tex, uv, kind, opts)
+        flat = kernel.sample(tex, uv.reshape(B, -1, 2), kind, opts)
+        torch.testing.assert_close(out.reshape(flat.shape), flat, rtol=0, atol=0, equal_nan=True)  # same bits
+        nan = out.isnan()
+        assert nan.sum() == 3 and nan.reshape(B, 3, -1)[B - 1, :, uv[0].numel() // 4 - 3].all()
+        with use_backend("reference"), torch.no_grad():
+            ref = difftex.sample(tex, uv.reshape(B, -1, S[-1], 2), filter=filter, wrap=("mirror", "clamp"))
+        torch.testing.assert_close(out, ref.reshape(out.shape), atol=1e-5, rtol=1e-5, equal_nan=True)
+
+
 @pytest.mark.parametrize("C", [1, 2, 3, 5])
 @pytest.mark.parametrize("B, Bt", [(2, 2), (2, 1)])
 @pytest.mark.parametrize("dtype", [f32, f64], ids=["float32", "float64"])
