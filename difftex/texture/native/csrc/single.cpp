@@ -939,12 +939,12 @@ DT_AVX2 void backward8(const Args<float>& A, const Group8<K>& g, const int64_t* 
   }
 }
 
-// Prepares the block of groups of points idx[s, n) for backward8 and prefetches the lines it reads (guv) and
-// writes (gt): gofs, the points' offsets in grad [B, C, M]; each group's rows include its points' texture
-// offsets (b * image). Returns the group count.
+// Prepares the block of groups of points idx[s, n) for backward8 and prefetches the lines it reads (grad; the
+// texture, for guv) and writes (gt): gofs, the points' offsets in grad [B, C, M]; each group's rows include
+// its points' texture offsets (b * image). Returns the group count.
 template <int K, int CC>
-DT_AVX2 int prepare_points(const Args<float>& A, const int64_t* idx, int64_t s, int64_t n, const float* gt,
-                           const float* guv, Group8<K>* grp, __m256i* gofs) {
+DT_AVX2 int prepare_points(const Args<float>& A, const int64_t* idx, int64_t s, int64_t n, const float* grad,
+                           const float* gt, const float* guv, Group8<K>* grp, __m256i* gofs) {
   const int64_t C = CC > 0 ? CC : A.C, M = A.M;
   const int m = static_cast<int>(std::min<int64_t>(kGroups, (n - s + 7) / 8));
   for (int i = 0; i < m; ++i) {
@@ -963,6 +963,13 @@ DT_AVX2 int prepare_points(const Args<float>& A, const int64_t* idx, int64_t s, 
     grp[i].cnt = cnt;
     grp[i].live = live_lanes(cnt, u, v);
     gofs[i] = _mm256_load_si256(reinterpret_cast<const __m256i*>(go));
+    // A band's points come in runs along the pixel rows, so a group's output gradients mostly share a line
+    // a channel. Measured with and without (1024^2 RGB texture, 512^2 points of a rotated view, 2 threads):
+    // 0.95-0.97x the bicubic backward's time, the bilinear one's unchanged (0.98-1.00x).
+    for (int64_t c = 0; c < C; ++c) {
+      DT_PREFETCH(grad + c * M + go[0], false);
+      if ((go[0] ^ go[cnt - 1]) >> 4) DT_PREFETCH(grad + c * M + go[cnt - 1], false);
+    }
     prepare8<K>(A, u, v, grp[i]);
     const __m256i tb = _mm256_load_si256(reinterpret_cast<const __m256i*>(to));
     for (int r = 0; r < K; ++r) grp[i].rows[r] = _mm256_add_epi32(grp[i].rows[r], tb);
@@ -980,10 +987,10 @@ __attribute__((target("avx2,fma"))) void backward_avx2(const Args<float>& A, con
   // Two blocks in flight, as forward_range_avx2.
   Group8<K> grp[2][kGroups];
   __m256i gofs[2][kGroups];
-  int cur = 0, m = n > 0 ? prepare_points<K, CC>(A, idx, 0, n, gt, guv, grp[0], gofs[0]) : 0;
+  int cur = 0, m = n > 0 ? prepare_points<K, CC>(A, idx, 0, n, grad, gt, guv, grp[0], gofs[0]) : 0;
   for (int64_t s = 0; s < n; cur ^= 1) {
     const int64_t next = s + 8 * m;
-    const int m2 = next < n ? prepare_points<K, CC>(A, idx, next, n, gt, guv, grp[cur ^ 1], gofs[cur ^ 1]) : 0;
+    const int m2 = next < n ? prepare_points<K, CC>(A, idx, next, n, grad, gt, guv, grp[cur ^ 1], gofs[cur ^ 1]) : 0;
     for (int i = 0; i < m; ++i, s += 8) backward8<K, CC, kBorder>(A, grp[cur][i], idx + s, gofs[cur][i], grad, gt, guv);
     m = m2;
   }
