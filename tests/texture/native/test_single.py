@@ -379,6 +379,61 @@ def test_the_banded_scatter_over_threads_gives_the_reference_bit_for_bit_at_any_
         _assert_matches(tex, uv, filter, wrap, TOL[dtype])
 
 
+def _band_count(h: int, reach: int, cap: int = 512) -> int:
+    """csrc/bands.h band_count: the largest power of two up to cap whose bands all have at least reach rows."""
+    nb = 1
+    while nb * 2 <= cap and nb * 2 * reach <= h:
+        nb *= 2
+    return nb
+
+
+@pytest.mark.skipif(not SIMD, reason="this CPU has no AVX2 / FMA: no eight-point backward")
+def test_the_eight_point_scatter_adds_in_band_order(path):
+    # The float32 bilinear backward's texture gradient, emulated add by add in float32 with the eight-point
+    # path's arithmetic (x = u * W - 0.5 clamped, weights 1 - t and t, shares (g * w_y) * w_x) and the banded
+    # order (csrc/bands.h): each point keyed by the band of the first row it writes, the even bands' points
+    # first, then the odd ones', each band's in index order. Equal bits need every key right: a key one band
+    # off moves a point's adds before or after another band's. 37 rows (16 bands of 2-3 rows: rows near band
+    # edges are common) and 29 columns, neither a power of two, so that u * 37 rounds in float32.
+    if path == "scalar":
+        pytest.skip("the scalar loop places taps in double")
+    np = pytest.importorskip("numpy")
+    H, W = 37, 29
+    g = torch.Generator().manual_seed(21)
+    tex = torch.rand(1, 1, H, W, generator=g)
+    uv = torch.rand(1, 40, 100, 2, generator=g) * 1.2 - 0.1  # a few points past the clamped edges
+    # v * 37 - 0.5 just under the first row of a band (7, 17, 19, 26, 33, 35), which float32 rounds up to:
+    # these points write from that row, where double arithmetic (the scalar loop's) names the band before.
+    uv[0, 5:11, 7, 1] = torch.tensor([0.2027027, 0.47297296, 0.527027, 0.7162162, 0.9054054, 0.95945942])
+    grad = torch.randn(1, 1, 40, 100, generator=g)
+    kernel = native.load()
+    opts = kernel.ReadOptions(wrap_u=WRAP_CODES["clamp"], wrap_v=WRAP_CODES["clamp"], border=0.0)
+
+    def taps(c, n):  # float32, as axis8
+        x = np.minimum(np.maximum(c * np.float32(n) - np.float32(0.5), np.float32(-3)), np.float32(n + 2))
+        x0 = np.floor(x)
+        t = x - x0
+        i = x0.astype(np.int64)
+        return (np.clip(i, 0, n - 1), np.clip(i + 1, 0, n - 1)), (np.float32(1) - t, t)
+
+    u, v = uv.reshape(-1, 2).numpy().T
+    (cx, wx), (ry, wy) = taps(u, W), taps(v, H)
+    nb = _band_count(H, 2)
+    key = ry[0] * nb // H  # the first row written: the lower tap, clamped
+    want = np.zeros((H, W), np.float32)
+    gs = grad.reshape(-1).numpy()
+    for parity in (0, 1):
+        for p in np.flatnonzero(key % 2 == parity):
+            for r in range(2):
+                share = gs[p] * wy[r][p]
+                for q in range(2):
+                    want[ry[r][p], cx[q][p]] += share * wx[q][p]
+    for threads in (1, 2):
+        gt, _ = _threads(threads, lambda: kernel.sample_backward(tex, uv, grad, 1, opts, need_texture=True,
+                                                                 need_uv=False))
+        assert torch.equal(gt[0, 0], torch.from_numpy(want)), threads
+
+
 @pytest.mark.parametrize("filter", ["trilinear", "anisotropic"])
 @pytest.mark.parametrize("wrap", [("repeat", "mirror"), ("mirror", "repeat"), ("clamp", "border")])
 def test_the_threaded_taps_backward_gives_the_reference(filter, wrap):

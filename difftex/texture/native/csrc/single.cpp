@@ -996,6 +996,43 @@ __attribute__((target("avx2,fma"))) void backward_avx2(const Args<float>& A, con
   }
 }
 
+// The band keys of points [lo, hi) for the banded scatter of backward_avx2, eight at a time: keys[p] =
+// b * nb + band[r] for the first row r that point p writes (first_row of the taps axis8 gives, which are the
+// rows backward8 writes: keys from the scalar loop's double arithmetic could name a row one off), -1 for a
+// point that writes nothing (a non-finite coordinate, or every tap on the border constant: those go to
+// border, where it is not null, for their uv gradient). band: each row's band.
+template <int KIND>
+__attribute__((target("avx2,fma"))) void keys_avx2(const Args<float>& A, int64_t lo, int64_t hi, int64_t nb,
+                                                  const int32_t* band, int32_t* keys, std::vector<int64_t>* border) {
+  constexpr int K = taps_of<KIND>();
+  const __m256i none = _mm256_set1_epi32(-1), big = _mm256_set1_epi32(std::numeric_limits<int32_t>::max());
+  Axis8<K> ay;
+  alignas(32) int32_t key[8], row[8];
+  for (int64_t s = lo; s < hi; s += 8) {
+    const int cnt = static_cast<int>(std::min<int64_t>(8, hi - s));
+    __m256 u, v;
+    const int live = load8(A.uv + 2 * s, cnt, u, v);
+    axis8<K>(v, static_cast<int32_t>(A.H), A.wrap_v, ay);
+    __m256i r = ay.i[0];
+    if (A.wrap_v != REPEAT) {  // the least row read, -1 where every tap reads the border constant
+      r = big;
+      for (int q = 0; q < K; ++q) r = _mm256_min_epi32(r, _mm256_blendv_epi8(big, ay.i[q], ay.in[q]));
+      r = _mm256_blendv_epi8(r, none, _mm256_cmpeq_epi32(r, big));
+    }
+    const int64_t b0 = A.Bt == 1 ? 0 : s / A.M, b1 = A.Bt == 1 ? 0 : (s + cnt - 1) / A.M;
+    __m256i k = _mm256_i32gather_epi32(band, _mm256_max_epi32(r, _mm256_setzero_si256()), 4);
+    k = _mm256_add_epi32(k, _mm256_set1_epi32(static_cast<int32_t>(b0 * nb)));
+    _mm256_store_si256(reinterpret_cast<__m256i*>(key), k);
+    _mm256_store_si256(reinterpret_cast<__m256i*>(row), r);
+    for (int j = 0; j < cnt; ++j) {
+      const bool writes = (live >> j & 1) && row[j] >= 0;
+      if (b1 != b0 && writes) key[j] = static_cast<int32_t>((s + j) / A.M * nb + band[row[j]]);  // a batch edge
+      keys[s + j] = writes ? key[j] : -1;
+      if ((live >> j & 1) && row[j] < 0 && border != nullptr) border->push_back(s + j);
+    }
+  }
+}
+
 #endif
 
 // Whether a float32 read of this kind and texture goes through the eight-point path.
@@ -1140,9 +1177,18 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
         const int64_t nb = band_count(H, taps_of<KIND>());
         std::vector<int32_t> classes(Bt * nb);
         for (int64_t i = 0; i < Bt * nb; ++i) classes[i] = nb > 1 ? static_cast<int32_t>(i % nb % 2) : 0;
-        std::vector<int32_t> keys(B * M);
+        std::vector<int32_t> keys(B * M), band(H);
+        for (int64_t r = 0; r < H; ++r) band[r] = static_cast<int32_t>(band_of(r, H, nb));
         at::parallel_for(0, B * M, 4096, [&](int64_t lo, int64_t hi) {
           std::vector<int64_t> border_only;  // every tap on the border constant: the uv gradient alone
+#if DT_HAVE_AVX2
+          if constexpr (std::is_same_v<scalar_t, float> && KIND != NEAREST) {
+            if (simd) {
+              keys_avx2<KIND>(A, lo, hi, nb, band.data(), keys.data(), pguv != nullptr ? &border_only : nullptr);
+              return blocks(border_only.data(), static_cast<int64_t>(border_only.size()), nullptr);
+            }
+          }
+#endif
           Taps<taps_of<KIND>()> ty;
           double v[kBlock];
           for (int64_t s = lo; s < hi; s += kBlock) {
@@ -1156,7 +1202,7 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
                 continue;
               }
               const int64_t r = first_row(ty, j, A.wrap_v);
-              keys[p] = r < 0 ? -1 : static_cast<int32_t>((Bt == 1 ? 0 : p / M) * nb + band_of(r, H, nb));
+              keys[p] = r < 0 ? -1 : static_cast<int32_t>((Bt == 1 ? 0 : p / M) * nb + band[r]);
               if (r < 0 && pguv != nullptr) border_only.push_back(p);
             }
           }
