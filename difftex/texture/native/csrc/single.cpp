@@ -1118,7 +1118,8 @@ torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, cons
           }
         }
 #endif
-        at::parallel_for(0, B * M, 2048, [&](int64_t lo, int64_t hi) { forward_range<scalar_t, KIND, CC, kB>(lo, hi, A, po); });
+        at::parallel_for(0, B * M, 2048,
+                         [&](int64_t lo, int64_t hi) { forward_range<scalar_t, KIND, CC, kB>(lo, hi, A, po); });
       });
     });
   });
