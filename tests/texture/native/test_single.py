@@ -388,24 +388,26 @@ def _band_count(h: int, reach: int, cap: int = 512) -> int:
 
 
 @pytest.mark.skipif(not SIMD, reason="this CPU has no AVX2 / FMA: no eight-point backward")
-def test_the_eight_point_scatter_adds_in_band_order(path):
+@pytest.mark.parametrize("Bt", [1, 2])
+def test_the_eight_point_scatter_adds_in_band_order(Bt, path):
     # The float32 bilinear backward's texture gradient, emulated add by add in float32 with the eight-point
     # path's arithmetic (x = u * W - 0.5 clamped, weights 1 - t and t, shares (g * w_y) * w_x) and the banded
     # order (csrc/bands.h): each point keyed by the band of the first row it writes, the even bands' points
     # first, then the odd ones', each band's in index order. Equal bits need every key right: a key one band
     # off moves a point's adds before or after another band's. 37 rows (16 bands of 2-3 rows: rows near band
-    # edges are common) and 29 columns, neither a power of two, so that u * 37 rounds in float32.
+    # edges are common) and 29 columns, neither a power of two, so that u * 37 rounds in float32. Two batch
+    # entries of 3939 points (groups of eight straddle them), on one shared texture or one texture each.
     if path == "scalar":
         pytest.skip("the scalar loop places taps in double")
     np = pytest.importorskip("numpy")
     H, W = 37, 29
     g = torch.Generator().manual_seed(21)
-    tex = torch.rand(1, 1, H, W, generator=g)
-    uv = torch.rand(1, 40, 100, 2, generator=g) * 1.2 - 0.1  # a few points past the clamped edges
+    tex = torch.rand(Bt, 1, H, W, generator=g)
+    uv = torch.rand(2, 39, 101, 2, generator=g) * 1.2 - 0.1  # a few points past the clamped edges
     # v * 37 - 0.5 just under the first row of a band (7, 17, 19, 26, 33, 35), which float32 rounds up to:
     # these points write from that row, where double arithmetic (the scalar loop's) names the band before.
     uv[0, 5:11, 7, 1] = torch.tensor([0.2027027, 0.47297296, 0.527027, 0.7162162, 0.9054054, 0.95945942])
-    grad = torch.randn(1, 1, 40, 100, generator=g)
+    grad = torch.randn(2, 1, 39, 101, generator=g)
     kernel = native.load()
     opts = kernel.ReadOptions(wrap_u=WRAP_CODES["clamp"], wrap_v=WRAP_CODES["clamp"], border=0.0)
 
@@ -419,19 +421,20 @@ def test_the_eight_point_scatter_adds_in_band_order(path):
     u, v = uv.reshape(-1, 2).numpy().T
     (cx, wx), (ry, wy) = taps(u, W), taps(v, H)
     nb = _band_count(H, 2)
-    key = ry[0] * nb // H  # the first row written: the lower tap, clamped
-    want = np.zeros((H, W), np.float32)
+    band = ry[0] * nb // H  # of the first row written: the lower tap, clamped
+    texture = np.arange(u.size) // (u.size // 2) if Bt == 2 else np.zeros(u.size, np.int64)
+    want = np.zeros((Bt, H, W), np.float32)
     gs = grad.reshape(-1).numpy()
     for parity in (0, 1):
-        for p in np.flatnonzero(key % 2 == parity):
+        for p in np.flatnonzero(band % 2 == parity):
             for r in range(2):
                 share = gs[p] * wy[r][p]
                 for q in range(2):
-                    want[ry[r][p], cx[q][p]] += share * wx[q][p]
+                    want[texture[p], ry[r][p], cx[q][p]] += share * wx[q][p]
     for threads in (1, 2):
         gt, _ = _threads(threads, lambda: kernel.sample_backward(tex, uv, grad, 1, opts, need_texture=True,
                                                                  need_uv=False))
-        assert torch.equal(gt[0, 0], torch.from_numpy(want)), threads
+        assert torch.equal(gt[:, 0], torch.from_numpy(want)), threads
 
 
 @pytest.mark.parametrize("filter", ["trilinear", "anisotropic"])
