@@ -8,6 +8,18 @@ per-round ratio of two functions is steadier than the ratio of their
 medians. Between timed calls the harness sleeps ``pause`` seconds: after a
 call torch's intra-op worker threads spin for 10-20 ms on a 2-core machine,
 which would otherwise be charged to the next function.
+
+The pause has a cost of its own on some virtual machines: on the 2-core VM
+of 2026-12-03, a torch.add of 4M floats on 2 threads took 0.58 ms back to
+back but 5.9-7.9 ms after a 10-50 ms sleep (1.1-2.1 ms with
+``OMP_WAIT_POLICY=passive``; a plain pthread condition-variable wake took
+0.06 ms), in periods of minutes to hours. An OpenMP worker that went to
+sleep after its spin then seems to wait several ms to be scheduled, and
+torch's parallel regions wait for it at their barrier. A call of a few ms on
+two threads then carries several ms that a loop of calls never sees.
+Dr.Jit's pool paid much less of this (its 2.5-3.9 ms forwards were
+unchanged), so compare such calls against a peer on one thread, or check
+for it first (``python -c`` a paused 2-thread torch.add).
 """
 from __future__ import annotations
 
