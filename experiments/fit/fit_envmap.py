@@ -136,7 +136,7 @@ def fit(iters: int = 300, res: int = 64, views: int = 48, batch: int = 6, size: 
         "env_psnr": env_psnr, "initial_env_psnr": curve["env_psnr"][0],
         "image_psnr": psnr(torch.log1p(fits), torch.log1p(targets), peak, mask=mask.expand_as(fits)),
         "ks": ks_raw.detach().tolist(), "ks_true": list(TRUE_KS), "ks_error": ks_err,
-        "exponent": float(log_n.exp()), "exponent_true": TRUE_EXP, "exponent_error": n_err,
+        "exponent": float(log_n.detach().exp()), "exponent_true": TRUE_EXP, "exponent_error": n_err,
         "final_loss": sum(losses[-10:]) / len(losses[-10:]), "seconds": seconds,
     }
     if save:
