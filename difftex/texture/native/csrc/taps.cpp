@@ -290,9 +290,28 @@ DT_AVX2 void read_taps8(const TapGroup8& g, int64_t e, int64_t C, const std::vec
 
 constexpr int kTapGroups = 8;  // groups of eight points a block
 
-// The forward of points [lo, hi) with one tap each, float32, by groups of eight in blocks of kTapGroups: two
-// blocks in flight (block i + 1 prepared and prefetched before block i is read). Groups on mixed levels or
-// holding a non-finite point, and the tail, go through the scalar loop.
+// The groups of eight points starting at lo, lo + 8, ... (below end) in blocks of kTapGroups, two blocks in
+// flight: block i + 1 is prepared (prepare(first, group), which also prefetches its lines) before block i
+// is read (read(group, first)), so that the misses of a block overlap the reads of the one before.
+template <typename G, typename Prepare, typename Read>
+DT_AVX2 void in_two_blocks(int64_t lo, int64_t end, Prepare&& prepare, Read&& read) {
+  G blk[2][kTapGroups];
+  auto fill = [&](int64_t first, G* b) __attribute__((target("avx2,fma"))) {
+    const int n = static_cast<int>(std::min<int64_t>(kTapGroups, (end - first) / 8));
+    for (int i = 0; i < n; ++i) prepare(first + 8 * i, b[i]);
+    return n;
+  };
+  int cur = 0, n = lo < end ? fill(lo, blk[0]) : 0;
+  for (int64_t e = lo; e < end; cur ^= 1) {
+    const int64_t next = e + 8 * n;
+    const int m = next < end ? fill(next, blk[cur ^ 1]) : 0;
+    for (int i = 0; i < n; ++i, e += 8) read(blk[cur][i], e);
+    n = m;
+  }
+}
+
+// The forward of points [lo, hi) with one tap each, float32, by groups of eight in_two_blocks. Groups on mixed
+// levels or holding a non-finite point, and the tail, go through the scalar loop.
 template <int CC, bool kBorder>
 __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t hi, int64_t Cdyn,
                                                             const std::vector<Level>& L,
@@ -301,27 +320,19 @@ __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t 
                                                             int64_t wrap_v, double border, bool nearest, bool d_grad) {
   const int64_t C = CC > 0 ? CC : Cdyn;
   const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
-  const int64_t groups = (hi - lo) / 8, end = lo + 8 * groups;
-  TapGroup8 blk[2][kTapGroups];
-  auto prepare = [&](int64_t first, TapGroup8* b) __attribute__((target("avx2,fma"))) {
-    const int n = static_cast<int>(std::min<int64_t>(kTapGroups, (end - first) / 8));
-    for (int i = 0; i < n; ++i)
-      prepare_taps8(first + 8 * i, C, L, lp, puv, pd, wrap_u, wrap_v, nearest, d_grad, b[i]);
-    return n;
-  };
-  int cur = 0, n = lo < end ? prepare(lo, blk[0]) : 0;
-  for (int64_t e = lo; e < end; cur ^= 1) {
-    const int64_t next = e + 8 * n;
-    const int m = next < end ? prepare(next, blk[cur ^ 1]) : 0;
-    for (int i = 0; i < n; ++i, e += 8) {
-      if (blk[cur][i].vec)
-        read_taps8<CC, kBorder>(blk[cur][i], e, C, L, lp, po, M, bv);
-      else
-        forward_range<float, CC, kBorder>(e, e + 8, C, L, lp, puv, pd, nullptr, nullptr, po, M, wrap_u, wrap_v,
-                                          border, nearest, d_grad);
-    }
-    n = m;
-  }
+  const int64_t end = lo + (hi - lo) / 8 * 8;
+  in_two_blocks<TapGroup8>(
+      lo, end,
+      [&](int64_t e, TapGroup8& g) __attribute__((target("avx2,fma"))) {
+        prepare_taps8(e, C, L, lp, puv, pd, wrap_u, wrap_v, nearest, d_grad, g);
+      },
+      [&](const TapGroup8& g, int64_t e) __attribute__((target("avx2,fma"))) {
+        if (g.vec)
+          read_taps8<CC, kBorder>(g, e, C, L, lp, po, M, bv);
+        else
+          forward_range<float, CC, kBorder>(e, e + 8, C, L, lp, puv, pd, nullptr, nullptr, po, M, wrap_u, wrap_v,
+                                            border, nearest, d_grad);
+      });
   if (end < hi)
     forward_range<float, CC, kBorder>(end, hi, C, L, lp, puv, pd, nullptr, nullptr, po, M, wrap_u, wrap_v, border,
                                       nearest, d_grad);
@@ -784,9 +795,8 @@ __attribute__((target("avx2,fma"))) void backward8(const BackGroup8& grp, const 
   }
 }
 
-// The backward of the points idx[0, n) by groups of eight, as many as fit (returned), in blocks of kTapGroups:
-// two blocks in flight (block i + 1 prepared and prefetched before block i is read). Groups on mixed levels
-// or holding a non-finite point go point by point through one, in their place in the order.
+// The backward of the points idx[0, n) by groups of eight, as many as fit (returned), in_two_blocks. Groups
+// on mixed levels or holding a non-finite point go point by point through one, in their place in the order.
 template <int CC, bool kBorder, typename One>
 __attribute__((target("avx2,fma"))) int64_t backward_range8(const int64_t* idx, int64_t n, int64_t C,
                                                             const std::vector<Level>& L,
@@ -796,26 +806,17 @@ __attribute__((target("avx2,fma"))) int64_t backward_range8(const int64_t* idx, 
                                                             double border, bool nearest, bool d_grad, One&& one) {
   const bool reads = out.uv != nullptr || out.D != nullptr;
   const int64_t end = n / 8 * 8;
-  BackGroup8 blk[2][kTapGroups];
-  auto prepare = [&](int64_t first, BackGroup8* b) __attribute__((target("avx2,fma"))) {
-    const int m = static_cast<int>(std::min<int64_t>(kTapGroups, (end - first) / 8));
-    for (int i = 0; i < m; ++i)
-      prepare_back8(idx + first + 8 * i, C, L, lp, puv, pd, pg, gsc, gsm, out, wrap_u, wrap_v, nearest, d_grad,
-                    reads, b[i]);
-    return m;
-  };
-  int cur = 0, m = end > 0 ? prepare(0, blk[0]) : 0;
-  for (int64_t s = 0; s < end; cur ^= 1) {
-    const int64_t next = s + 8 * m;
-    const int m2 = next < end ? prepare(next, blk[cur ^ 1]) : 0;
-    for (int i = 0; i < m; ++i, s += 8) {
-      if (blk[cur][i].vec)
-        backward8<CC, kBorder>(blk[cur][i], idx + s, C, L, lp, pg, out, gsc, gsm, border);
-      else
-        for (int j = 0; j < 8; ++j) one(idx[s + j]);
-    }
-    m = m2;
-  }
+  in_two_blocks<BackGroup8>(
+      0, end,
+      [&](int64_t s, BackGroup8& g) __attribute__((target("avx2,fma"))) {
+        prepare_back8(idx + s, C, L, lp, puv, pd, pg, gsc, gsm, out, wrap_u, wrap_v, nearest, d_grad, reads, g);
+      },
+      [&](const BackGroup8& g, int64_t s) __attribute__((target("avx2,fma"))) {
+        if (g.vec)
+          backward8<CC, kBorder>(g, idx + s, C, L, lp, pg, out, gsc, gsm, border);
+        else
+          for (int j = 0; j < 8; ++j) one(idx[s + j]);
+      });
   return end;
 }
 
