@@ -17,10 +17,17 @@ back but 5.9-7.9 ms after a 10-50 ms sleep (1.1-2.1 ms with
 sleep after its spin then seems to wait several ms to be scheduled, and
 torch's parallel regions wait for it at their barrier. A call of a few ms on
 two threads then carries several ms that a loop of calls never sees.
-Dr.Jit's pool paid much less of this (its 2.5-3.9 ms forwards were
-unchanged), so compare such calls against a peer on one thread, or check
-for it first: time a 2-thread torch.add of a few million floats back to
-back and after a 20 ms sleep.
+
+Dr.Jit pays a cost after a pause too: its 1024^2 bilinear forward of 512^2
+points took 2.5-3.9 ms after a pause in the runs of one day and 3.8 ms in a later one, but
+0.9 ms as the ninth call of a loop; ours (channels_last) 4.7 ms after the
+pause, 0.96 ms in the loop. Calls of a few ms are therefore timed both ways:
+after the pause alone, and with ``settle`` untimed calls of the same
+function between the pause and the timed one (its own threads awake, as in
+a render or training loop; 5-8 calls reached the loop's time there, 2-3 did
+not). The pause still keeps one library's spinning threads off the next.
+To see whether the penalty is present: time a 2-thread torch.add of a few
+million floats back to back and after a 20 ms sleep.
 """
 from __future__ import annotations
 
@@ -69,7 +76,7 @@ def _synchronize(device: Optional[torch.device | str]) -> None:
 
 
 def time_interleaved(fns: Sequence[Callable[[], object]], repeats: int = 9, *, warmup: int = 1,
-                     pause: float = 0.02, shuffle: bool = False, seed: int = 0,
+                     pause: float = 0.02, settle: int = 0, shuffle: bool = False, seed: int = 0,
                      device: Optional[torch.device | str] = None) -> list[Timing]:
     """Time each of ``fns`` ``repeats`` times, interleaved in rounds; one :class:`Timing` per function.
 
@@ -78,16 +85,20 @@ def time_interleaved(fns: Sequence[Callable[[], object]], repeats: int = 9, *, w
         repeats: timed rounds (>= 1).
         warmup: untimed rounds first (allocator, lazy imports, kernel builds).
         pause: seconds slept before every timed call (see the module doc).
+        settle: untimed calls of the same function between the pause and its
+            timed call: the time of a call in a loop of calls, its own
+            worker threads awake (see the module doc).
         shuffle: a new order of ``fns`` every round (seeded by ``seed``).
         device: a CUDA device is synchronized around every timed call, so
             that the time is the kernels' and not their launch's.
 
     Raises:
-        ValueError: ``repeats`` < 1, ``warmup`` or ``pause`` < 0, or no functions.
+        ValueError: ``repeats`` < 1, ``warmup``, ``pause`` or ``settle`` < 0, or no functions.
     """
-    if not fns or repeats < 1 or warmup < 0 or pause < 0:
-        raise ValueError(f"time_interleaved: expected functions, repeats >= 1, warmup >= 0 and pause >= 0, got "
-                         f"{len(fns)} functions, repeats={repeats}, warmup={warmup}, pause={pause}")
+    if not fns or repeats < 1 or warmup < 0 or pause < 0 or settle < 0:
+        raise ValueError(f"time_interleaved: expected functions, repeats >= 1, warmup >= 0, pause >= 0 and "
+                         f"settle >= 0, got {len(fns)} functions, repeats={repeats}, warmup={warmup}, "
+                         f"pause={pause}, settle={settle}")
     rng = random.Random(seed)
     order = list(range(len(fns)))
     times: list[list[float]] = [[] for _ in fns]
@@ -97,6 +108,8 @@ def time_interleaved(fns: Sequence[Callable[[], object]], repeats: int = 9, *, w
         for i in order:
             if pause and r >= warmup:
                 time.sleep(pause)
+            for _ in range(settle if r >= warmup else 0):
+                fns[i]()
             _synchronize(device)
             t = time.perf_counter()
             fns[i]()

@@ -5,7 +5,10 @@ bilinear and bicubic (``--filters``), every wrap mode (``--wraps``), forward
 and forward+backward (gradients to the texture and the uv). The peers, each
 timed interleaved with ours in rounds (a pause before every timed call:
 after a call torch's and Dr.Jit's worker threads spin for 10-20 ms and
-would slow the next call on a 2-core machine):
+would slow the next call on a 2-core machine). Two tables: each timed call
+the first after the pause, and the last of a run of ``--settle`` + 1 calls
+(a loop's time: on some VMs a thread woken after the pause costs several ms,
+see difftex/testing/timing.py). The peers:
 
 * **Dr.Jit** (the JIT behind Mitsuba 3; the ``peers`` extra, LLVM backend on
   the CPU): ``Texture2f`` with its wrap mode (repeat, clamp, mirror: it has
@@ -193,18 +196,10 @@ def agreement(peer: Optional[DrJit], tex: torch.Tensor, uv: torch.Tensor, wraps)
     return lines
 
 
-def run(args) -> list[str]:
-    torch.manual_seed(0)
-    H = W = args.size
-    tex = torch.rand(1, 3, H, W)
-    uv, dx, dy = make_uv(args.points, args.uv)
+def table(args, tex, uv, peer, settle: int) -> list[str]:
+    """The table of every filter, wrap and pass, timed after a pause (settle 0) or in a loop (settle calls first)."""
+    H, W = tex.shape[-2:]
     M = uv.shape[1] * uv.shape[2]
-    threads = torch.get_num_threads()
-    peer = None
-    try:
-        peer = DrJit(tex, uv, threads)
-    except ImportError:
-        print("# drjit is not installed (pip install 'difftex[peers]'): Dr.Jit columns skipped")
     rows = ["| filter | wrap | pass | ours ms | ours channels_last ms | Dr.Jit ms | grid_sample ms | "
             "ours / Dr.Jit [IQR] | ours channels_last / Dr.Jit [IQR] | ours / grid_sample [IQR] | ours GB/s | "
             "Dr.Jit GB/s |", "|---" * 12 + "|"]
@@ -219,7 +214,7 @@ def run(args) -> list[str]:
                 has_peer = peer is not None and wrap in DRJIT_WRAPS
                 if has_peer:
                     fns.append(peer.step(filt, wrap, grad))
-                times = time_interleaved(fns, args.reps, warmup=2, pause=args.pause)
+                times = time_interleaved(fns, args.reps, warmup=2, pause=args.pause, settle=settle)
                 ours, gs, cl = times[0], times[1], times[2]
                 gb = bytes_moved(3, H, W, M, grad) / 1e6
                 rg = ratio_stats(ours, gs)
@@ -234,15 +229,34 @@ def run(args) -> list[str]:
                           f"{gb / times[3].median:.1f}" if has_peer else "-"]
                 rows.append("| " + " | ".join(cells) + " |")
                 print(rows[-1], flush=True)
+    return rows
+
+
+def run(args) -> list[str]:
+    torch.manual_seed(0)
+    tex = torch.rand(1, 3, args.size, args.size)
+    uv, dx, dy = make_uv(args.points, args.uv)
+    peer = None
+    try:
+        peer = DrJit(tex, uv, torch.get_num_threads())
+    except ImportError:
+        print("# drjit is not installed (pip install 'difftex[peers]'): Dr.Jit columns skipped")
+    rows = []
+    for settle in sorted({0, args.settle}):
+        title = (f"**In a loop**: each timed call follows {settle} untimed calls of the same function after the "
+                 "pause (the library's own threads awake, as in a render or training loop)."
+                 if settle else "**After a pause**: each timed call the first after the pause.")
+        print("# " + title)
+        rows += [title, ""] + table(args, tex, uv, peer, settle) + [""]
     # Trilinear against our own bilinear, forward+backward, the same points.
     tri = ours_step(tex, uv, True, "auto", filter="trilinear", wrap="repeat", uv_dx=dx, uv_dy=dy)
     bil = ours_step(tex, uv, True, "auto", filter="bilinear", wrap="repeat")
-    a, b = time_interleaved([tri, bil], args.reps, warmup=2, pause=args.pause)
-    r = ratio_stats(a, b)
-    rows.append("")
-    rows.append(f"trilinear fwd+bwd {a.median:.2f} ms, bilinear fwd+bwd {b.median:.2f} ms: "
-                f"trilinear / bilinear {r[0]:.2f} [{r[1]:.2f}-{r[2]:.2f}] (repeat)")
-    print(rows[-1], flush=True)
+    for settle in sorted({0, args.settle}):
+        a, b = time_interleaved([tri, bil], args.reps, warmup=2, pause=args.pause, settle=settle)
+        r = ratio_stats(a, b)
+        rows.append(f"- trilinear fwd+bwd {a.median:.2f} ms, bilinear fwd+bwd {b.median:.2f} ms: trilinear / bilinear "
+                    f"{r[0]:.2f} [{r[1]:.2f}-{r[2]:.2f}] (repeat, {'in a loop' if settle else 'after a pause'})")
+        print(rows[-1], flush=True)
     agree = agreement(peer, tex, uv, args.wraps)
     if agree:
         rows += ["", "Dr.Jit reads the same point for the same uv:"] + agree
@@ -257,6 +271,8 @@ def main() -> None:
     p.add_argument("--uv", default="view", choices=["view", "random"])
     p.add_argument("--reps", type=int, default=15)
     p.add_argument("--pause", type=float, default=0.03, help="seconds slept before every timed call")
+    p.add_argument("--settle", type=int, default=8,
+                   help="untimed calls between the pause and the timed one in the second table (0: one table)")
     p.add_argument("--filters", nargs="+", default=["bilinear", "bicubic"], choices=list(FILTERS))
     p.add_argument("--wraps", nargs="+", default=["repeat", "clamp", "mirror", "border"],
                    choices=["repeat", "clamp", "mirror", "border"])

@@ -62,6 +62,21 @@ def test_timing_harness_interleaves_and_pauses():
     assert Timing((2.0, 4.0)).ratio_to(Timing((1.0, 1.0))) == 3.0
     with pytest.raises(ValueError, match="repeats >= 1"):
         time_interleaved(fns, repeats=0)
+    with pytest.raises(ValueError, match="settle=-1"):
+        time_interleaved(fns, settle=-1)
+
+
+def test_settle_calls_each_function_untimed_right_before_its_timed_call():
+    calls = []
+
+    def a():  # calls 4 and 7 of a (warm-up, then two settling calls before each timed one) are the slow ones
+        calls.append("a")
+        n = calls.count("a")
+        time.sleep(0.004 if n > 1 and n % 3 == 1 else 0)
+    fns = [a, lambda: calls.append("b")]
+    ta, tb = time_interleaved(fns, repeats=2, warmup=1, pause=0.0, settle=2)
+    assert calls == ["a", "b"] + ["a"] * 3 + ["b"] * 3 + ["a"] * 3 + ["b"] * 3  # warm-up round without settling
+    assert min(ta.times_ms) >= 4.0 and max(ta.times_ms) < 4.0 + 3.0  # only the third call of each run is timed
 
 
 def test_shuffled_rounds_call_every_function_once_a_round():
