@@ -700,16 +700,12 @@ __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t 
                                                             const Tiles& t, float* out) {
   constexpr int K = taps_of<KIND>();
   const int64_t C = CC > 0 ? CC : A.C;
-  // Two blocks in flight: block i + 1 is prepared and its lines prefetched before block i is read, so each
-  // prefetch leads its reads by a block (measured: prefetching a block just before reading it left two threads
-  // no faster than one on a 1024^2 texture).
-  Group8<K> grp[2][kGroups];
   Walk w{t, lo, hi};
-  for (int cur = 0, n = prepare_block<K>(A, t, C, w, grp[0]); n > 0; cur ^= 1) {
-    const int m = prepare_block<K>(A, t, C, w, grp[cur ^ 1]);
-    for (int i = 0; i < n; ++i) forward8<K, CC, kBorder>(A, grp[cur][i], out + grp[cur][i].at, A.M);
-    n = m;
-  }
+  in_two_blocks<Group8<K>, kGroups>(
+      [&](Group8<K>* b) __attribute__((target("avx2,fma"))) { return prepare_block<K>(A, t, C, w, b); },
+      [&](const Group8<K>& g) __attribute__((target("avx2,fma"))) {
+        forward8<K, CC, kBorder>(A, g, out + g.at, A.M);
+      });
 }
 
 // ---------------------------------------------------------------------------
@@ -881,13 +877,14 @@ __attribute__((target("avx512f,avx512dq,avx2,fma"))) void forward_range_avx512(i
                                                                                 const Tiles& t, float* out) {
   constexpr int K = taps_of<KIND>();
   const int64_t C = CC > 0 ? CC : A.C;
-  Group16<K> grp[2][kGroups16];
   Walk w{t, lo, hi};
-  for (int cur = 0, n = prepare_block16<K>(A, t, C, w, grp[0]); n > 0; cur ^= 1) {
-    const int m = prepare_block16<K>(A, t, C, w, grp[cur ^ 1]);
-    for (int i = 0; i < n; ++i) forward16<K, CC, kBorder>(A, grp[cur][i], out + grp[cur][i].at, A.M);
-    n = m;
-  }
+  in_two_blocks<Group16<K>, kGroups16>(
+      [&](Group16<K>* b) __attribute__((target("avx512f,avx512dq,avx2,fma"))) {
+        return prepare_block16<K>(A, t, C, w, b);
+      },
+      [&](const Group16<K>& g) __attribute__((target("avx512f,avx512dq,avx2,fma"))) {
+        forward16<K, CC, kBorder>(A, g, out + g.at, A.M);
+      });
 }
 
 // The backward of a group of points p[0..g.cnt) (any indices into [B * M]; the group's rows include each
@@ -949,15 +946,24 @@ DT_AVX2 void backward8(const Args<float>& A, const Group8<K>& g, const int64_t* 
   }
 }
 
-// Prepares the block of groups of points idx[s, n) for backward8 and prefetches the lines it reads (grad; the
-// texture, for guv) and writes (gt): gofs, the points' offsets in grad [B, C, M]; each group's rows include
-// its points' texture offsets (b * image). Returns the group count.
+// A group of points for backward8: its taps (whose rows include the points' texture offsets, b * image) and
+// the points' offsets in grad [B, C, M].
+template <int K>
+struct PointGroup8 {
+  Group8<K> g;
+  __m256i gofs;
+};
+
+// Prepares the next block of groups of points idx[s, n) for backward8 and prefetches the lines it reads
+// (grad; the texture, for guv) and writes (gt). Returns the group count (0 where s >= n).
+
 template <int K, int CC>
 DT_AVX2 int prepare_points(const Args<float>& A, const int64_t* idx, int64_t s, int64_t n, const float* grad,
-                           const float* gt, const float* guv, Group8<K>* grp, __m256i* gofs) {
+                           const float* gt, const float* guv, PointGroup8<K>* pg) {
   const int64_t C = CC > 0 ? CC : A.C, M = A.M;
   const int m = static_cast<int>(std::min<int64_t>(kGroups, (n - s + 7) / 8));
   for (int i = 0; i < m; ++i) {
+    Group8<K>& g = pg[i].g;
     const int64_t first = s + 8 * i;
     const int cnt = static_cast<int>(std::min<int64_t>(8, n - first));
     alignas(32) float us[8], vs[8];
@@ -970,9 +976,9 @@ DT_AVX2 int prepare_points(const Args<float>& A, const int64_t* idx, int64_t s, 
       to[j] = static_cast<int32_t>((A.Bt == 1 ? 0 : b) * A.image);
     }
     __m256 u = _mm256_load_ps(us), v = _mm256_load_ps(vs);
-    grp[i].cnt = cnt;
-    grp[i].live = live_lanes(cnt, u, v);
-    gofs[i] = _mm256_load_si256(reinterpret_cast<const __m256i*>(go));
+    g.cnt = cnt;
+    g.live = live_lanes(cnt, u, v);
+    pg[i].gofs = _mm256_load_si256(reinterpret_cast<const __m256i*>(go));
     // A band's points come in runs along the pixel rows, so a group's output gradients mostly share a line
     // a channel. Measured with and without (1024^2 RGB texture, 512^2 points of a rotated view, 2 threads):
     // 0.95-0.97x the bicubic backward's time, the bilinear one's unchanged (0.98-1.00x).
@@ -980,11 +986,11 @@ DT_AVX2 int prepare_points(const Args<float>& A, const int64_t* idx, int64_t s, 
       DT_PREFETCH(grad + c * M + go[0], false);
       if ((go[0] ^ go[cnt - 1]) >> 4) DT_PREFETCH(grad + c * M + go[cnt - 1], false);
     }
-    prepare8<K>(A, u, v, grp[i]);
+    prepare8<K>(A, u, v, g);
     const __m256i tb = _mm256_load_si256(reinterpret_cast<const __m256i*>(to));
-    for (int r = 0; r < K; ++r) grp[i].rows[r] = _mm256_add_epi32(grp[i].rows[r], tb);
-    if (guv != nullptr) prefetch8<K, false>(grp[i], A.tex, A);
-    if (gt != nullptr) prefetch8<K, true>(grp[i], gt, A);
+    for (int r = 0; r < K; ++r) g.rows[r] = _mm256_add_epi32(g.rows[r], tb);
+    if (guv != nullptr) prefetch8<K, false>(g, A.tex, A);
+    if (gt != nullptr) prefetch8<K, true>(g, gt, A);
   }
   return m;
 }
@@ -994,16 +1000,17 @@ template <int KIND, int CC, bool kBorder>
 __attribute__((target("avx2,fma"))) void backward_avx2(const Args<float>& A, const int64_t* idx, int64_t n,
                                                        const float* grad, float* gt, float* guv) {
   constexpr int K = taps_of<KIND>();
-  // Two blocks in flight, as forward_range_avx2.
-  Group8<K> grp[2][kGroups];
-  __m256i gofs[2][kGroups];
-  int cur = 0, m = n > 0 ? prepare_points<K, CC>(A, idx, 0, n, grad, gt, guv, grp[0], gofs[0]) : 0;
-  for (int64_t s = 0; s < n; cur ^= 1) {
-    const int64_t next = s + 8 * m;
-    const int m2 = next < n ? prepare_points<K, CC>(A, idx, next, n, grad, gt, guv, grp[cur ^ 1], gofs[cur ^ 1]) : 0;
-    for (int i = 0; i < m; ++i, s += 8) backward8<K, CC, kBorder>(A, grp[cur][i], idx + s, gofs[cur][i], grad, gt, guv);
-    m = m2;
-  }
+  int64_t next = 0, s = 0;
+  in_two_blocks<PointGroup8<K>, kGroups>(
+      [&](PointGroup8<K>* b) __attribute__((target("avx2,fma"))) {
+        const int m = prepare_points<K, CC>(A, idx, next, n, grad, gt, guv, b);
+        next += 8 * m;
+        return m;
+      },
+      [&](const PointGroup8<K>& b) __attribute__((target("avx2,fma"))) {
+        backward8<K, CC, kBorder>(A, b.g, idx + s, b.gofs, grad, gt, guv);
+        s += 8;
+      });
 }
 
 // The band keys of points [lo, hi) for the banded scatter of backward_avx2, eight at a time: keys[p] =

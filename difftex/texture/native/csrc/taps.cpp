@@ -290,27 +290,24 @@ DT_AVX2 void read_taps8(const TapGroup8& g, int64_t e, int64_t C, const std::vec
 
 constexpr int kTapGroups = 8;  // groups of eight points a block
 
-// The groups of eight points starting at lo, lo + 8, ... (below end) in blocks of kTapGroups, two blocks in
-// flight: block i + 1 is prepared (prepare(first, group), which also prefetches its lines) before block i
-// is read (read(group, first)), so that the misses of a block overlap the reads of the one before.
+// The groups of eight points starting at lo, lo + 8, ... (below end), in_two_blocks of kTapGroups:
+// prepare(first, group) prepares a group and prefetches its lines, read(group, first) reads it.
 template <typename G, typename Prepare, typename Read>
-DT_AVX2 void in_two_blocks(int64_t lo, int64_t end, Prepare&& prepare, Read&& read) {
-  G blk[2][kTapGroups];
-  auto fill = [&](int64_t first, G* b) __attribute__((target("avx2,fma"))) {
-    const int n = static_cast<int>(std::min<int64_t>(kTapGroups, (end - first) / 8));
-    for (int i = 0; i < n; ++i) prepare(first + 8 * i, b[i]);
-    return n;
-  };
-  int cur = 0, n = lo < end ? fill(lo, blk[0]) : 0;
-  for (int64_t e = lo; e < end; cur ^= 1) {
-    const int64_t next = e + 8 * n;
-    const int m = next < end ? fill(next, blk[cur ^ 1]) : 0;
-    for (int i = 0; i < n; ++i, e += 8) read(blk[cur][i], e);
-    n = m;
-  }
+DT_AVX2 void groups_of_eight(int64_t lo, int64_t end, Prepare&& prepare, Read&& read) {
+  int64_t next = lo, e = lo;
+  in_two_blocks<G, kTapGroups>(
+      [&](G* b) __attribute__((target("avx2,fma"))) {
+        const int n = static_cast<int>(std::min<int64_t>(kTapGroups, (end - next) / 8));
+        for (int i = 0; i < n; ++i, next += 8) prepare(next, b[i]);
+        return n;
+      },
+      [&](const G& g) __attribute__((target("avx2,fma"))) {
+        read(g, e);
+        e += 8;
+      });
 }
 
-// The forward of points [lo, hi) with one tap each, float32, by groups of eight in_two_blocks. Groups on mixed
+// The forward of points [lo, hi) with one tap each, float32, by groups_of_eight. Groups on mixed
 // levels or holding a non-finite point, and the tail, go through the scalar loop.
 template <int CC, bool kBorder>
 __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t hi, int64_t Cdyn,
@@ -321,7 +318,7 @@ __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t 
   const int64_t C = CC > 0 ? CC : Cdyn;
   const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
   const int64_t end = lo + (hi - lo) / 8 * 8;
-  in_two_blocks<TapGroup8>(
+  groups_of_eight<TapGroup8>(
       lo, end,
       [&](int64_t e, TapGroup8& g) __attribute__((target("avx2,fma"))) {
         prepare_taps8(e, C, L, lp, puv, pd, wrap_u, wrap_v, nearest, d_grad, g);
@@ -795,7 +792,7 @@ __attribute__((target("avx2,fma"))) void backward8(const BackGroup8& grp, const 
   }
 }
 
-// The backward of the points idx[0, n) by groups of eight, as many as fit (returned), in_two_blocks. Groups
+// The backward of the points idx[0, n) by groups_of_eight, as many as fit (returned). Groups
 // on mixed levels or holding a non-finite point go point by point through one, in their place in the order.
 template <int CC, bool kBorder, typename One>
 __attribute__((target("avx2,fma"))) int64_t backward_range8(const int64_t* idx, int64_t n, int64_t C,
@@ -806,7 +803,7 @@ __attribute__((target("avx2,fma"))) int64_t backward_range8(const int64_t* idx, 
                                                             double border, bool nearest, bool d_grad, One&& one) {
   const bool reads = out.uv != nullptr || out.D != nullptr;
   const int64_t end = n / 8 * 8;
-  in_two_blocks<BackGroup8>(
+  groups_of_eight<BackGroup8>(
       0, end,
       [&](int64_t s, BackGroup8& g) __attribute__((target("avx2,fma"))) {
         prepare_back8(idx + s, C, L, lp, puv, pd, pg, gsc, gsm, out, wrap_u, wrap_v, nearest, d_grad, reads, g);
