@@ -135,13 +135,14 @@ def test_the_kernel_reads_any_pixel_shape_in_place(dtype, path):
     assert torch.equal(plain, graph.detach())
 
 
-@pytest.mark.parametrize("S", [(19, 45), (8, 32), (3, 100), (40, 31), (1, 70), (2, 3, 33)], ids=str)
+@pytest.mark.parametrize("S", [(19, 45), (8, 32), (3, 100), (40, 31), (1, 70), (2, 3, 33), (45, 100)], ids=str)
 @pytest.mark.parametrize("B, Bt", [(2, 2), (3, 1)])
 def test_a_two_d_pixel_shape_read_tile_by_tile_gives_the_points_in_order(S, B, Bt, path):
     # The vector forwards read [B, ..., Ho, Wo, 2] in tiles of 8 rows by 32 points (csrc/single.cpp, Tiles):
     # here heights and widths that are not multiples of the tile, a width under 32 and a single row (read in
-    # order), and a 3-D pixel shape. Every point is written once, with the flat list's bits; a NaN stays in
-    # its pixel; the values are the reference's.
+    # order), a 3-D pixel shape, and (45, 100): 180 segments an entry, which two or more threads split inside
+    # a band on three threads (each thread's walk decodes its first segment, then counts). Every point is written once, with
+    # the flat list's bits; a NaN stays in its pixel; the values are the reference's.
     kernel = native.load()
     g = torch.Generator().manual_seed(sum(S))
     tex = torch.rand(Bt, 3, 37, 29, generator=g)
@@ -149,7 +150,7 @@ def test_a_two_d_pixel_shape_read_tile_by_tile_gives_the_points_in_order(S, B, B
     uv.view(B, -1, 2)[B - 1, uv[0].numel() // 4 - 3, 1] = float("nan")
     opts = kernel.ReadOptions(wrap_u=WRAP_CODES["mirror"], wrap_v=WRAP_CODES["clamp"], border=0.0)
     for kind, filter in ((1, "bilinear"), (2, "bicubic")):
-        out = kernel.sample(tex, uv, kind, opts)
+        out = _threads(3, lambda: kernel.sample(tex, uv, kind, opts))
         flat = kernel.sample(tex, uv.reshape(B, -1, 2), kind, opts)
         torch.testing.assert_close(out.reshape(flat.shape), flat, rtol=0, atol=0, equal_nan=True)  # same bits
         nan = out.isnan()
