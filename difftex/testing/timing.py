@@ -16,12 +16,16 @@ back but 5.9-7.9 ms after a 10-50 ms sleep (1.1-2.1 ms with
 0.06 ms), in periods of minutes to hours. An OpenMP worker that went to
 sleep after its spin then seems to wait several ms to be scheduled, and
 torch's parallel regions wait for it at their barrier. A call of a few ms on
-two threads then carries several ms that a loop of calls never sees.
+two threads then carries several ms that a loop of calls never sees. Part of
+it is the caches: on one thread the same add took 1.2 ms back to back and
+3.3-3.7 ms after 20 ms of sleep or of busy-waiting alike (other tenants
+evict the shared L3 within milliseconds).
 
-Dr.Jit pays a cost after a pause too: its 1024^2 bilinear forward of 512^2
-points took 2.5-3.9 ms after a pause in the runs of one day and 3.8 ms in a later one, but
-0.9 ms as the ninth call of a loop; ours (channels_last) 4.7 ms after the
-pause, 0.96 ms in the loop. Calls of a few ms are therefore timed both ways:
+Dr.Jit pays a cost after a pause too: its 1024^2 bilinear clamp forward of
+512^2 points took 2.5-3.9 ms after a pause in the runs of one day and
+3.8-8.0 ms in those of the next, but 0.89-0.97 ms as the ninth call of a
+loop; ours (channels_last) 3.6-7.7 ms after the pause, 0.85-1.07 ms in the
+loop. Calls of a few ms are therefore timed both ways:
 after the pause alone, and with ``settle`` untimed calls of the same
 function between the pause and the timed one (its own threads awake, as in
 a render or training loop; 5-8 calls reached the loop's time there, 2-3 did
