@@ -7,8 +7,8 @@ timed interleaved with ours in rounds (a pause before every timed call:
 after a call torch's and Dr.Jit's worker threads spin for 10-20 ms and
 would slow the next call on a 2-core machine). Two tables: each timed call
 the first after the pause, and the last of a run of ``--settle`` + 1 calls
-(a loop's time: on some VMs a thread woken after the pause costs several ms,
-see difftex/testing/timing.py). The peers:
+(a loop's time: on some VMs a call after the pause finds the caches emptied
+and its worker threads slow to wake, see difftex/testing/timing.py). The peers:
 
 * **Dr.Jit** (the JIT behind Mitsuba 3; the ``peers`` extra, LLVM backend on
   the CPU): ``Texture2f`` with its wrap mode (repeat, clamp, mirror: it has

@@ -140,9 +140,9 @@ def test_the_kernel_reads_any_pixel_shape_in_place(dtype, path):
 def test_a_two_d_pixel_shape_read_tile_by_tile_gives_the_points_in_order(S, B, Bt, path):
     # The vector forwards read [B, ..., Ho, Wo, 2] in tiles of 8 rows by 32 points (csrc/single.cpp, Tiles):
     # here heights and widths that are not multiples of the tile, a width under 32 and a single row (read in
-    # order), a 3-D pixel shape, and (45, 100): 180 segments an entry, which two or more threads split inside
-    # a band on three threads (each thread's walk decodes its first segment, then counts). Every point is written once, with
-    # the flat list's bits; a NaN stays in its pixel; the values are the reference's.
+    # order), a 3-D pixel shape, and (45, 100): 180 segments an entry, which three threads split inside a band
+    # (each thread's walk decodes its first segment, then counts). Every point is written once, with the flat
+    # list's bits; a NaN stays in its pixel; the values are the reference's.
     kernel = native.load()
     g = torch.Generator().manual_seed(sum(S))
     tex = torch.rand(Bt, 3, 37, 29, generator=g)

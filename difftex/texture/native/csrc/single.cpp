@@ -695,7 +695,7 @@ DT_INLINE bool forward_prefetch(const Args<float>& A) { return K > 2 || A.cs == 
 // Prepares the next block of groups of eight points from the walk and prefetches their lines. Returns the
 // group count (0 at the walk's end).
 template <int K>
-DT_AVX2 int prepare_block(const Args<float>& A, const Tiles& t, int64_t C, Walk& w, Group8<K>* grp) {
+DT_AVX2 int prepare_block(const Args<float>& A, int64_t C, Walk& w, Group8<K>* grp) {
   int n = 0;
   for (int64_t first; n < kGroups && w.next(8, first, grp[n].cnt); ++n) {
     Group8<K>& g = grp[n];
@@ -716,7 +716,7 @@ __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t 
   const int64_t C = CC > 0 ? CC : A.C;
   Walk w{t, lo, hi};
   in_two_blocks<Group8<K>, kGroups>(
-      [&](Group8<K>* b) __attribute__((target("avx2,fma"))) { return prepare_block<K>(A, t, C, w, b); },
+      [&](Group8<K>* b) __attribute__((target("avx2,fma"))) { return prepare_block<K>(A, C, w, b); },
       [&](const Group8<K>& g) __attribute__((target("avx2,fma"))) {
         forward8<K, CC, kBorder>(A, g, out + g.at, A.M);
       });
@@ -871,7 +871,7 @@ constexpr int kGroups16 = kBlock / 16;
 
 // prepare_block with groups of sixteen.
 template <int K>
-DT_AVX512 int prepare_block16(const Args<float>& A, const Tiles& t, int64_t C, Walk& w, Group16<K>* grp) {
+DT_AVX512 int prepare_block16(const Args<float>& A, int64_t C, Walk& w, Group16<K>* grp) {
   int n = 0;
   for (int64_t first; n < kGroups16 && w.next(16, first, grp[n].cnt); ++n) {
     Group16<K>& g = grp[n];
@@ -894,7 +894,7 @@ __attribute__((target("avx512f,avx512dq,avx2,fma"))) void forward_range_avx512(i
   Walk w{t, lo, hi};
   in_two_blocks<Group16<K>, kGroups16>(
       [&](Group16<K>* b) __attribute__((target("avx512f,avx512dq,avx2,fma"))) {
-        return prepare_block16<K>(A, t, C, w, b);
+        return prepare_block16<K>(A, C, w, b);
       },
       [&](const Group16<K>& g) __attribute__((target("avx512f,avx512dq,avx2,fma"))) {
         forward16<K, CC, kBorder>(A, g, out + g.at, A.M);
@@ -970,7 +970,6 @@ struct PointGroup8 {
 
 // Prepares the next block of groups of points idx[s, n) for backward8 and prefetches the lines it reads
 // (grad; the texture, for guv) and writes (gt). Returns the group count (0 where s >= n).
-
 template <int K, int CC>
 DT_AVX2 int prepare_points(const Args<float>& A, const int64_t* idx, int64_t s, int64_t n, const float* grad,
                            const float* gt, const float* guv, PointGroup8<K>* pg) {
