@@ -39,8 +39,8 @@ def taps(filter: str, dx: Tensor, dy: Tensor, bias: Union[float, Tensor], height
     count None for trilinear / nearest-mip (one tap a point), and None where
     every point takes one tap on the torch path. Where no gradient reaches
     dx, dy or the bias, the native kernel computes it in one pass on the CPU
-    (``native/csrc/front.cpp``: the same values to rounding, about 2-3x
-    faster than these torch ops, which are its reference).
+    (``native/csrc/front.cpp``: the same values to rounding, 5-14x faster
+    than these torch ops at 512^2 points, which are its reference).
     """
     kind = {"trilinear": 0, "nearest-mip": 0, "anisotropic": 1, "auto": 2}[filter]
     grad = torch.is_grad_enabled() and (dx.requires_grad or dy.requires_grad or

@@ -103,6 +103,43 @@ def test_the_kernel_front_end_gives_the_torch_front_end(dtype, filter, max_aniso
             assert torch.isfinite(axis).all()
 
 
+@needs_kernel
+@pytest.mark.parametrize("layout", ["contiguous", "uv_da"])
+@pytest.mark.parametrize("kind", [0, 1, 2])
+def test_the_vector_front_end_gives_the_scalar_one(layout, kind):
+    # float32 footprints four points at a time (front.cpp front_range4: the scalar loop's operations lane by
+    # lane but its own log2, the last points of a range through a copy) against the scalar loop, degenerate
+    # footprints included; 3999 points leave a tail of three. kind: trilinear, anisotropic, auto. "uv_da":
+    # nvdiffrast's interleaved derivatives, rows 4 floats apart.
+    kernel = native.load()
+    dx, dy, bias = _front_cases(torch.float32)
+    M = dx.shape[0] - 1
+    if layout == "uv_da":
+        da = torch.cat((dx, dy), -1)
+        dx, dy = da[:, :2], da[:, 2:]
+    dx, dy = dx[:M], dy[:M]
+
+    def front(simd: bool, b: torch.Tensor, n: int, max_aniso: float, tolerance: float):
+        before = kernel.set_simd(simd)
+        try:
+            return kernel.front(dx, dy, b, bias0=0.25, height=64, width=128, levels=n, kind=kind,
+                                max_aniso=max_aniso, tolerance=tolerance)
+        finally:
+            kernel.set_simd(before)
+
+    for b in (dx.new_empty(0), bias[:M].contiguous()):
+        for n, max_aniso, tolerance in ((6, 16.0, 0.1), (40, 4.5, 0.0), (40, 16.0, 2.0)):
+            (D, axis, count), (D_ref, axis_ref, count_ref) = (front(simd, b, n, max_aniso, tolerance)
+                                                              for simd in (True, False))
+            # the levels within a float32 rounding (the log2s differ by 1e-12), the degenerate ones exactly;
+            # the counts and axes bit for bit
+            torch.testing.assert_close(D, D_ref, atol=0, rtol=2 ** -23)
+            assert torch.equal(D[:100], D_ref[:100])
+            assert torch.equal(count, count_ref) and torch.equal(axis, axis_ref)
+            if kind:
+                assert (count > 1).any() and (count == 1).any()
+
+
 def test_disabled_or_failed_build_falls_back_to_the_torch_path(monkeypatch):
     tex, uv, dx, dy = _case()
     ref = difftex.sample(tex, uv, filter="anisotropic", uv_dx=dx, uv_dy=dy)
