@@ -265,8 +265,8 @@ def test_the_vector_paths_read_as_the_scalar_loop_and_the_reference(filter):
 def test_the_eight_point_taps_read_as_the_scalar_loop_and_the_reference(filter):
     # 2 x 12 x 16 points on a 20 x 24 texture: the first rows share one footprint, 4:1 (groups of eight on the
     # same levels with one tap count: the eight-point paths, one tap or four), the next ones the same two
-    # levels with 4-8 taps (the N-tap paths' groups with mixed counts), the others a random one each (groups on mixed
-    # levels: the scalar loop); a NaN inside a group; uv up to a texture past
+    # levels with 4-8 taps (the N-tap paths' groups with mixed counts), one an integer level (trilinear: 2), the
+    # others a random one each (groups on mixed levels: the scalar loop); a NaN inside a group; uv up to a texture past
     # each edge; gradients to texture, uv and both derivatives (through the level). Both paths give the same
     # bits, so grouping cannot change a result.
     g = torch.Generator().manual_seed(5)
@@ -279,6 +279,8 @@ def test_the_eight_point_taps_read_as_the_scalar_loop_and_the_reference(filter):
     stretch = 1 + torch.rand(2, 3, 16, generator=g)
     dx[:, 6:9] = torch.stack((0.5 * stretch, torch.zeros_like(stretch)), -1)
     dy[:, 6:9] = torch.tensor([0.0, 0.15])
+    # Row 9: level 2 exactly (4 texels along u): level 1 read at weight 0 for the derivative from below.
+    dx[:, 9], dy[:, 9] = torch.tensor([4 / 24, 0.0]), torch.tensor([0.0, 0.05])
     uv[1, 3, 4, 1] = float("nan")
     kernel = native.load()
 

@@ -184,11 +184,66 @@ DT_AVX2 __m256 tap8(const float* plane, const Quad8& t, int q, __m256 border) {
   return _mm256_mask_i32gather_ps(border, plane, t.idx[q], _mm256_castsi256_ps(t.in[q]), 4);
 }
 
-// The reads (levels, weights) of eight points, when all read the same levels; false otherwise.
-DT_AVX2 bool reads8(const float* pd, const int64_t* e, int64_t K, bool nearest, bool d_grad, Reads* r) {
-  for (int j = 0; j < 8; ++j) {
-    r[j] = reads_of(static_cast<double>(pd[e ? e[j] : j]), K, nearest, d_grad);
-    if (r[j].n != r[0].n || r[j].k[0] != r[0].k[0] || (r[j].n == 2 && r[j].k[1] != r[0].k[1])) return false;
+// The reads of eight points that read the same levels (reads_of's levels), with each point's weights and
+// their d / dD.
+struct Reads8 {
+  int n;
+  int64_t k[2];
+  alignas(32) double wt[2][8], dwt[2][8];
+};
+
+// reads_of for eight points (D at pd[0 .. 8), or at pd[e[j]] where e is given), in vectors with its
+// operations (the same bits), when all read the same levels; false otherwise.
+DT_AVX2 bool reads8(const float* pd, const int64_t* e, int64_t K, bool nearest, bool d_grad, Reads8* r) {
+  alignas(32) float d8[8];
+  if (e != nullptr) {
+    for (int j = 0; j < 8; ++j) d8[j] = pd[e[j]];
+    pd = d8;
+  }
+  const __m256d zero = _mm256_setzero_pd(), one = _mm256_set1_pd(1.0);
+  const __m256d last = _mm256_set1_pd(static_cast<double>(K - 1));
+  __m256d d[2], k[2];
+  for (int h = 0; h < 2; ++h) {
+    d[h] = _mm256_cvtps_pd(_mm_loadu_ps(pd + 4 * h));
+    // floor_capped (-2^52 for NaN) then clamped into [0, K - 1]: max_pd gives 0 for NaN as well
+    k[h] = _mm256_min_pd(_mm256_max_pd(_mm256_floor_pd(nearest ? _mm256_add_pd(d[h], _mm256_set1_pd(0.5)) : d[h]),
+                                       zero), last);
+  }
+  const double k0 = _mm256_cvtsd_f64(k[0]);
+  const __m256d first = _mm256_set1_pd(k0);
+  if ((_mm256_movemask_pd(_mm256_cmp_pd(k[0], first, _CMP_EQ_OQ)) &
+       _mm256_movemask_pd(_mm256_cmp_pd(k[1], first, _CMP_EQ_OQ))) != 0xF)
+    return false;
+  r->k[0] = static_cast<int64_t>(k0);
+  __m256d t[2];
+  int pair = 0;
+  for (int h = 0; h < 2; ++h) {
+    t[h] = _mm256_sub_pd(d[h], k[h]);
+    pair |= _mm256_movemask_pd(_mm256_cmp_pd(t[h], zero, _CMP_GT_OQ)) << (4 * h);
+  }
+  if (nearest || k0 >= static_cast<double>(K - 1)) pair = 0;
+  if (pair != 0 && pair != 0xFF) return false;  // some between two levels, some on one
+  const __m256d minus = _mm256_set1_pd(-1.0);
+  for (int h = 0; h < 2; ++h) {
+    if (pair) {  // between two levels
+      _mm256_store_pd(r->wt[0] + 4 * h, _mm256_sub_pd(one, t[h]));
+      _mm256_store_pd(r->wt[1] + 4 * h, t[h]);
+      _mm256_store_pd(r->dwt[0] + 4 * h, minus);
+      _mm256_store_pd(r->dwt[1] + 4 * h, one);
+    } else {  // an integer level: read alone, or with the level below at weight 0 for the derivative
+      _mm256_store_pd(r->wt[0] + 4 * h, one);
+      _mm256_store_pd(r->wt[1] + 4 * h, zero);
+      _mm256_store_pd(r->dwt[0] + 4 * h, nearest ? zero : one);
+      _mm256_store_pd(r->dwt[1] + 4 * h, minus);
+    }
+  }
+  if (pair) {
+    r->n = 2, r->k[1] = r->k[0] + 1;
+  } else if (!nearest && d_grad && k0 > 0) {
+    r->n = 2, r->k[1] = r->k[0] - 1;
+  } else {
+    r->n = 1;
+    for (int h = 0; h < 2; ++h) _mm256_store_pd(r->dwt[0] + 4 * h, zero);
   }
   return true;
 }
@@ -196,7 +251,7 @@ DT_AVX2 bool reads8(const float* pd, const int64_t* e, int64_t K, bool nearest, 
 // Whether the points [e, e + 8) go through a forward's eight-point path: finite uv and the same levels (their
 // reads in r).
 DT_AVX2 bool group_reads8(int64_t e, const float* puv, const float* pd, int64_t K, bool nearest, bool d_grad,
-                          Reads* r) {
+                          Reads8* r) {
   for (int j = 0; j < 8; ++j)
     if (!std::isfinite(puv[2 * (e + j)]) || !std::isfinite(puv[2 * (e + j) + 1])) return false;
   return reads8(pd + e, nullptr, K, nearest, d_grad, r);
@@ -204,9 +259,8 @@ DT_AVX2 bool group_reads8(int64_t e, const float* puv, const float* pd, int64_t 
 
 // The four bilinear weights of eight points' taps on their level jr: wl * (1 - fx) * (1 - fy) ... in double,
 // as the scalar loop, then float32.
-DT_AVX2 void tap_weights8(const Reads* r, int jr, const Place8& px, const Place8& py, __m256* w) {
-  alignas(32) double wl[8];
-  for (int j = 0; j < 8; ++j) wl[j] = r[j].wt[jr];
+DT_AVX2 void tap_weights8(const Reads8& r, int jr, const Place8& px, const Place8& py, __m256* w) {
+  const double* wl = r.wt[jr];
   __m256d w4[2][4];
   for (int h = 0; h < 2; ++h) {
     const __m256d l = _mm256_load_pd(wl + 4 * h), one = _mm256_set1_pd(1.0);
@@ -237,15 +291,15 @@ struct TapGroup8 {
 DT_AVX2 void prepare_taps8(int64_t e, int64_t C, const std::vector<Level>& L, const std::vector<const float*>& lp,
                            const float* puv, const float* pd, int64_t wrap_u, int64_t wrap_v, bool nearest,
                            bool d_grad, TapGroup8& g) {
-  Reads r[8];
-  g.vec = group_reads8(e, puv, pd, static_cast<int64_t>(L.size()), nearest, d_grad, r);
+  Reads8 r;
+  g.vec = group_reads8(e, puv, pd, static_cast<int64_t>(L.size()), nearest, d_grad, &r);
   if (!g.vec) return;
   alignas(32) double u[8], v[8];
   for (int j = 0; j < 8; ++j) u[j] = puv[2 * (e + j)], v[j] = puv[2 * (e + j) + 1];
-  g.n = r[0].n;
+  g.n = r.n;
   for (int jr = 0; jr < g.n; ++jr) {
-    const Level& lv = L[r[0].k[jr]];
-    g.k[jr] = r[0].k[jr];
+    const Level& lv = L[r.k[jr]];
+    g.k[jr] = r.k[jr];
     Place8 px, py;
     place8(u, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
     place8(v, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
@@ -353,8 +407,8 @@ __attribute__((target("avx2,fma"))) void forward_taps_avx2(int64_t lo, int64_t h
   const int64_t K = static_cast<int64_t>(L.size());
   int64_t e = lo;
   for (; CC > 0 && e + 8 <= hi; e += 8) {
-    Reads r[8];
-    if (!group_reads8(e, puv, pd, K, nearest, d_grad, r)) {
+    Reads8 r;
+    if (!group_reads8(e, puv, pd, K, nearest, d_grad, &r)) {
       forward_range<float, CC, kBorder>(e, e + 8, CC, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border,
                                         nearest, d_grad);
       continue;
@@ -379,15 +433,15 @@ __attribute__((target("avx2,fma"))) void forward_taps_avx2(int64_t lo, int64_t h
         on[j] = i < N[j] ? -1 : 0;
       }
       const __m256 mask = _mm256_castsi256_ps(_mm256_load_si256(reinterpret_cast<const __m256i*>(on)));
-      for (int jr = 0; jr < r[0].n; ++jr) {
-        const Level& lv = L[r[0].k[jr]];
+      for (int jr = 0; jr < r.n; ++jr) {
+        const Level& lv = L[r.k[jr]];
         Place8 px, py;
         place8(tu, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
         place8(tv, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
         const Quad8 t = quad8(px, py, static_cast<int32_t>(lv.w));
         __m256 w[4];
         tap_weights8(r, jr, px, py, w);
-        const float* p = lp[r[0].k[jr]];
+        const float* p = lp[r.k[jr]];
         for (int c = 0; c < CC; ++c) {
           const float* pp = p + c * lv.plane;
           __m256 s = _mm256_setzero_ps();
@@ -703,19 +757,19 @@ DT_AVX2 void prepare_back8(const int64_t* e, int64_t C, const std::vector<Level>
     u[j] = puv[2 * e[j]], v[j] = puv[2 * e[j] + 1];
     if (!std::isfinite(u[j]) || !std::isfinite(v[j])) return;
   }
-  Reads r[8];
-  if (!reads8(pd, e, static_cast<int64_t>(L.size()), nearest, d_grad, r)) return;
+  Reads8 r;
+  if (!reads8(pd, e, static_cast<int64_t>(L.size()), nearest, d_grad, &r)) return;
   g.vec = true;
   // A band's points come in runs along the pixel rows: a group's output gradients mostly share a line.
   for (int64_t c = 0; c < C; ++c) {
     DT_PREFETCH(pg + c * gsc + e[0] * gsm, false);
     if (e[7] - e[0] != 7) DT_PREFETCH(pg + c * gsc + e[7] * gsm, false);
   }
-  g.n = r[0].n;
+  g.n = r.n;
   for (int jr = 0; jr < g.n; ++jr) {
-    const int64_t k = g.k[jr] = r[0].k[jr];
+    const int64_t k = g.k[jr] = r.k[jr];
     const Level& lv = L[k];
-    for (int j = 0; j < 8; ++j) g.wt[jr][j] = r[j].wt[jr], g.dwt[jr][j] = r[j].dwt[jr];
+    for (int j = 0; j < 8; ++j) g.wt[jr][j] = r.wt[jr][j], g.dwt[jr][j] = r.dwt[jr][j];
     level8(u, v, lv, wrap_u, wrap_v, g.lv[jr]);
     alignas(32) int32_t o[2][8];  // the first tap of each row
     _mm256_store_si256(reinterpret_cast<__m256i*>(o[0]), g.lv[jr].t.idx[0]);
@@ -847,8 +901,8 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
     nfl[j] = static_cast<float>(N[j]);
     most = std::max(most, N[j]);
   }
-  Reads r[8];
-  if (!reads8(pd, e, static_cast<int64_t>(L.size()), nearest, d_grad, r)) return false;
+  Reads8 r;
+  if (!reads8(pd, e, static_cast<int64_t>(L.size()), nearest, d_grad, &r)) return false;
   // Each tap's share of the output gradient; points whose share is 0 in every channel write nothing.
   __m256 g[CC];
   __m256 any = _mm256_setzero_ps();
@@ -861,12 +915,12 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
   }
   const int live = _mm256_movemask_ps(any);
   if (live == 0) return true;
-  const int n = r[0].n;
+  const int n = r.n;
   alignas(32) double wt[2][8], dwt[2][8];
   __m256 wl[2];
   for (int jr = 0; jr < n; ++jr) {
     alignas(32) float wlf[8];
-    for (int j = 0; j < 8; ++j) wt[jr][j] = r[j].wt[jr], dwt[jr][j] = r[j].dwt[jr], wlf[j] = static_cast<float>(wt[jr][j]);
+    for (int j = 0; j < 8; ++j) wt[jr][j] = r.wt[jr][j], dwt[jr][j] = r.dwt[jr][j], wlf[j] = static_cast<float>(wt[jr][j]);
     wl[jr] = _mm256_load_ps(wlf);
   }
   const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
@@ -887,7 +941,7 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
                              _mm256_load_pd(reinterpret_cast<const double*>(on + 4))};
     __m256d tdu[2] = {zero, zero}, tdv[2] = {zero, zero};
     for (int jr = 0; jr < n; ++jr) {
-      const int64_t k = r[0].k[jr];
+      const int64_t k = r.k[jr];
       const bool held = out.gp[k] != nullptr;
       Level8 a;
       level8(tu, tv, L[k], wrap_u, wrap_v, a);
@@ -911,9 +965,9 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
     if (!(live >> j & 1)) continue;
     for (int64_t i = 0; i < N[j]; ++i)
       for (int jr = 0; jr < n; ++jr) {
-        float* gk = out.gp[r[0].k[jr]];
+        float* gk = out.gp[r.k[jr]];
         if (gk == nullptr) continue;
-        const int64_t plane = L[r[0].k[jr]].plane;
+        const int64_t plane = L[r.k[jr]].plane;
         for (int c = 0; c < CC; ++c)
           for (int q = 0; q < 4; ++q)
             if (!kBorder || in[i][jr][q][j]) gk[c * plane + idx[i][jr][q][j]] += share[i][jr][c][q][j];
