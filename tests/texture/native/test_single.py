@@ -265,10 +265,10 @@ def test_the_vector_paths_read_as_the_scalar_loop_and_the_reference(filter):
 def test_the_eight_point_taps_read_as_the_scalar_loop_and_the_reference(filter):
     # 2 x 12 x 16 points on a 20 x 24 texture: the first rows share one footprint, 4:1 (groups of eight on the
     # same levels with one tap count: the eight-point paths, one tap or four), the next ones the same two
-    # levels with 4-8 taps (the N-tap paths' groups with mixed counts), one an integer level (trilinear: 2), the
-    # others a random one each (groups on mixed levels: the scalar loop); a NaN inside a group; uv up to a texture past
-    # each edge; gradients to texture, uv and both derivatives (through the level). Both paths give the same
-    # bits, so grouping cannot change a result.
+    # levels with 4-8 taps (the N-tap paths' groups with mixed counts), one an integer level (trilinear: 2),
+    # the others a random one each (groups on mixed levels: the scalar loop); a NaN inside a group; uv up to a
+    # texture past each edge; gradients to texture, uv and both derivatives (through the level). Both paths
+    # give the same bits, so grouping cannot change a result.
     g = torch.Generator().manual_seed(5)
     tex = torch.rand(2, 3, 20, 24, generator=g)
     uv = torch.rand(2, 12, 16, 2, generator=g) * 3 - 1
