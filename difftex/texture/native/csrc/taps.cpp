@@ -735,9 +735,7 @@ DT_AVX2 void level_grads8(const Level8& a, const Level& lv, const float* p, int6
 // (finite points reading the same levels), and then its levels, their weights and their placed taps.
 struct BackGroup8 {
   bool vec;
-  int n;
-  int64_t k[2];
-  alignas(32) double wt[2][8], dwt[2][8];
+  Reads8 r;
   Level8 lv[2];
 };
 
@@ -757,19 +755,16 @@ DT_AVX2 void prepare_back8(const int64_t* e, int64_t C, const std::vector<Level>
     u[j] = puv[2 * e[j]], v[j] = puv[2 * e[j] + 1];
     if (!std::isfinite(u[j]) || !std::isfinite(v[j])) return;
   }
-  Reads8 r;
-  if (!reads8(pd, e, static_cast<int64_t>(L.size()), nearest, d_grad, &r)) return;
+  if (!reads8(pd, e, static_cast<int64_t>(L.size()), nearest, d_grad, &g.r)) return;
   g.vec = true;
   // A band's points come in runs along the pixel rows: a group's output gradients mostly share a line.
   for (int64_t c = 0; c < C; ++c) {
     DT_PREFETCH(pg + c * gsc + e[0] * gsm, false);
     if (e[7] - e[0] != 7) DT_PREFETCH(pg + c * gsc + e[7] * gsm, false);
   }
-  g.n = r.n;
-  for (int jr = 0; jr < g.n; ++jr) {
-    const int64_t k = g.k[jr] = r.k[jr];
+  for (int jr = 0; jr < g.r.n; ++jr) {
+    const int64_t k = g.r.k[jr];
     const Level& lv = L[k];
-    for (int j = 0; j < 8; ++j) g.wt[jr][j] = r.wt[jr][j], g.dwt[jr][j] = r.dwt[jr][j];
     level8(u, v, lv, wrap_u, wrap_v, g.lv[jr]);
     alignas(32) int32_t o[2][8];  // the first tap of each row
     _mm256_store_si256(reinterpret_cast<__m256i*>(o[0]), g.lv[jr].t.idx[0]);
@@ -811,12 +806,12 @@ __attribute__((target("avx2,fma"))) void backward8(const BackGroup8& grp, const 
   std::vector<float> sheap(CC > 0 ? 0 : C * 32);
   alignas(32) float sstack[CMAX][4][8];
   float(*share)[4][8] = CC > 0 ? sstack : reinterpret_cast<float(*)[4][8]>(sheap.data());
-  for (int jr = 0; jr < grp.n; ++jr) {
-    const int64_t k = grp.k[jr];
+  for (int jr = 0; jr < grp.r.n; ++jr) {
+    const int64_t k = grp.r.k[jr];
     alignas(32) float wlf[8];
-    for (int j = 0; j < 8; ++j) wlf[j] = static_cast<float>(grp.wt[jr][j]);
+    for (int j = 0; j < 8; ++j) wlf[j] = static_cast<float>(grp.r.wt[jr][j]);
     float* gk = out.gp[k];
-    level_grads8<kBorder>(grp.lv[jr], L[k], lp[k], C, g, _mm256_load_ps(wlf), bv, grp.wt[jr], grp.dwt[jr],
+    level_grads8<kBorder>(grp.lv[jr], L[k], lp[k], C, g, _mm256_load_ps(wlf), bv, grp.r.wt[jr], grp.r.dwt[jr],
                           gk != nullptr ? share : nullptr, du, dv, dD);
     if (gk == nullptr) continue;
     alignas(32) int32_t idx[4][8], in[4][8];
@@ -916,11 +911,10 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
   const int live = _mm256_movemask_ps(any);
   if (live == 0) return true;
   const int n = r.n;
-  alignas(32) double wt[2][8], dwt[2][8];
   __m256 wl[2];
   for (int jr = 0; jr < n; ++jr) {
     alignas(32) float wlf[8];
-    for (int j = 0; j < 8; ++j) wt[jr][j] = r.wt[jr][j], dwt[jr][j] = r.dwt[jr][j], wlf[j] = static_cast<float>(wt[jr][j]);
+    for (int j = 0; j < 8; ++j) wlf[j] = static_cast<float>(r.wt[jr][j]);
     wl[jr] = _mm256_load_ps(wlf);
   }
   const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
@@ -945,7 +939,7 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
       const bool held = out.gp[k] != nullptr;
       Level8 a;
       level8(tu, tv, L[k], wrap_u, wrap_v, a);
-      level_grads8<kBorder>(a, L[k], lp[k], CC, g, wl[jr], bv, wt[jr], dwt[jr], held ? share[i][jr] : nullptr, tdu,
+      level_grads8<kBorder>(a, L[k], lp[k], CC, g, wl[jr], bv, r.wt[jr], r.dwt[jr], held ? share[i][jr] : nullptr, tdu,
                             tdv, dD, mask);
       if (held)
         for (int q = 0; q < 4; ++q) {
