@@ -87,14 +87,6 @@ DT_AVX2 __m256d pairs2(const float* p, int64_t stride) {
   return _mm256_cvtps_pd(_mm_castsi128_ps(_mm_unpacklo_epi64(a, b)));
 }
 
-// The squared length of four points' footprint vector (x, y) * (W, H), from pairs2 halves.
-DT_AVX2 __m256d len2_4(__m256d lo, __m256d hi, __m256d scale) {
-  lo = _mm256_mul_pd(lo, scale);
-  hi = _mm256_mul_pd(hi, scale);
-  // hadd: (point 0, point 2, point 1, point 3)
-  return _mm256_permute4x64_pd(_mm256_hadd_pd(_mm256_mul_pd(lo, lo), _mm256_mul_pd(hi, hi)), 0xD8);
-}
-
 // front's arguments, and as vectors for the vector front end.
 struct FrontArgs {
   double W, H, top, cap, shrink, exp2_bias0, bias0;
@@ -126,16 +118,22 @@ DT_AVX2 __m256d clamp_level4(__m256d x, __m256d top) {
 DT_AVX2 void trilinear_level4(const float* px, int64_t xr, const float* py, int64_t yr, const float* pb,
                               const Front4& f, float* pD) {
   const __m256d zero = _mm256_setzero_pd(), far = _mm256_set1_pd(kFar);
-  const __m256d scale = _mm256_blend_pd(f.W, f.H, 0b1010);
-  const __m256d p2 = len2_4(pairs2(px, xr), pairs2(px + 2 * xr, xr), scale);
-  const __m256d q2 = len2_4(pairs2(py, yr), pairs2(py + 2 * yr, yr), scale);
+  __m256d dx0, dx1, dy0, dy1;
+  split4(pairs2(px, xr), pairs2(px + 2 * xr, xr), &dx0, &dx1);
+  split4(pairs2(py, yr), pairs2(py + 2 * yr, yr), &dy0, &dy1);
+  const auto len2 = [&](__m256d x, __m256d y) __attribute__((target("avx2,fma"))) {
+    x = _mm256_mul_pd(x, f.W);
+    y = _mm256_mul_pd(y, f.H);
+    return _mm256_add_pd(_mm256_mul_pd(x, x), _mm256_mul_pd(y, y));
+  };
+  const __m256d p2 = len2(dx0, dx1), q2 = len2(dy0, dy1);
   // NaN in either: level 0 (-kFar); else the longer; 0: -kFar; infinite: +kFar
-  const __m256d nan = _mm256_cmp_pd(p2, q2, _CMP_UNORD_Q), len2 = _mm256_max_pd(p2, q2);
-  const __m256d small = _mm256_or_pd(nan, _mm256_cmp_pd(len2, zero, _CMP_EQ_OQ));
+  const __m256d nan = _mm256_cmp_pd(p2, q2, _CMP_UNORD_Q), longer = _mm256_max_pd(p2, q2);
+  const __m256d small = _mm256_or_pd(nan, _mm256_cmp_pd(longer, zero, _CMP_EQ_OQ));
   const __m256d inf = _mm256_set1_pd(std::numeric_limits<double>::infinity());
-  const __m256d large = _mm256_andnot_pd(nan, _mm256_cmp_pd(len2, inf, _CMP_EQ_OQ));  // NaN wins over inf
+  const __m256d large = _mm256_andnot_pd(nan, _mm256_cmp_pd(longer, inf, _CMP_EQ_OQ));  // NaN wins over inf
   __m256d v = _mm256_mul_pd(_mm256_set1_pd(0.5),
-                            log2_4(_mm256_blendv_pd(len2, _mm256_set1_pd(1.0), _mm256_or_pd(small, large))));
+                            log2_4(_mm256_blendv_pd(longer, _mm256_set1_pd(1.0), _mm256_or_pd(small, large))));
   v = _mm256_blendv_pd(_mm256_blendv_pd(v, _mm256_sub_pd(zero, far), small), far, large);
   const __m256d b = pb ? _mm256_cvtps_pd(_mm_loadu_ps(pb)) : _mm256_set1_pd(f.bias0);
   _mm_storeu_ps(pD, _mm256_cvtpd_ps(clamp_level4(_mm256_add_pd(v, b), f.top)));
