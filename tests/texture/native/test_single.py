@@ -160,20 +160,24 @@ def test_a_two_d_pixel_shape_read_tile_by_tile_gives_the_points_in_order(S, B, B
         torch.testing.assert_close(out, ref.reshape(out.shape), atol=1e-5, rtol=1e-5, equal_nan=True)
 
 
-@pytest.mark.parametrize("C", [1, 2, 3, 5])
+@pytest.mark.parametrize("C", [1, 2, 3, 4, 5])
 @pytest.mark.parametrize("B, Bt", [(2, 2), (2, 1)])
 @pytest.mark.parametrize("dtype", [f32, f64], ids=["float32", "float64"])
 def test_a_channels_last_texture_is_read_in_place_with_the_planar_bits(B, Bt, C, dtype, path):
     # The kernel reads a channels_last texture interleaved (no copy) and scatters its gradient into a
     # channels_last buffer; texels, weights and the order of every sum are the planar read's, so values and
-    # gradients are equal bit for bit. 1,300 points a batch entry: the banded scatter runs threaded.
+    # gradients are equal bit for bit. 1,300 points a batch entry: the banded scatter runs threaded. The
+    # first four rows keep every tap inside the texture, in order, and clamp or mirror in u repeat or
+    # reverse a lane's taps at the edges: the sixteen-point forward reads 3 and 4 interleaved channels as
+    # runs of pairs of floats there (pair_taps16).
     tex, uv = _inputs(dtype, B=B, Bt=Bt, C=C, H=23, W=17, Ho=26, Wo=50, seed=C)
+    uv[:, :4] = uv[:, :4].remainder(1.0) * 0.7 + 0.15
     interleaved = tex.contiguous(memory_format=torch.channels_last)
     assert C == 1 or not interleaved.is_contiguous()
     _assert_matches(interleaved, uv, "bicubic", ("mirror", "border"), TOL[dtype])
     uv[0, 3, 5, 0] = float("nan")
     for filter, wrap in itertools.product(("nearest", "bilinear", "bicubic"),
-                                          (("repeat", "clamp"), ("mirror", "border"))):
+                                          (("repeat", "clamp"), ("clamp", "mirror"), ("mirror", "border"))):
         out, gt, gu = _read("native", tex, uv, filter, wrap)
         out_i, gt_i, gu_i = _read("native", interleaved, uv, filter, wrap)
         assert torch.equal(out.nan_to_num(7.0), out_i.nan_to_num(7.0)), (filter, wrap)
@@ -224,11 +228,17 @@ def test_huge_and_far_uv_read_as_the_reference(path):
 def test_the_vector_paths_read_as_the_scalar_loop_and_the_reference(filter):
     # 3 x 45 points: groups of eight and a tail of five per batch entry (of sixteen and thirteen on the
     # sixteen-point forward), a NaN and an inf inside groups (lanes that write NaN, or nothing in the
-    # backward), coordinates on texel centres and edges, just below 0 and 1, huge.
+    # backward), coordinates on texel centres and edges, just below 0 and 1, huge. The sixteen-point
+    # forward reads a row's taps as pairs of texels (pair_taps16) where every lane's taps lie within K
+    # adjacent texels: a row of 9 points (a group) whose taps are texels x0 - 1 ... x0 + 2 in order, one
+    # whose u all lie past the left edge (clamp, mirror: one texel repeated), the random rest (repeat:
+    # seams, read texel by texel).
     tex, uv = _inputs(f32, B=3, Bt=3, C=5, H=9, W=6, Ho=5, Wo=9, seed=11)
     special = torch.tensor([[0.5 / 6, 0.5 / 9], [1 / 6, 1 / 9], [-1e-9, 1 - 1e-7], [1e30, -1e30], [-1.0, 2.0],
                             [3e7 + 0.25, -5e6 - 0.75], [-2.0 - 1 / 6, 3.5], [1e-30, -1e-30]])
     uv[1, 1, :8] = special
+    uv[2, 0, :, 0] = torch.linspace(1.5 / 6, 3.4 / 6, 9)
+    uv[2, 3, :, 0] = torch.linspace(-0.4, -0.01, 9)
     uv[0, 2, 3, 0] = float("nan")
     uv[2, 4, 1, 1] = float("inf")
     kernel = native.load()
