@@ -3,9 +3,11 @@
 A 1024x1024 RGB texture sampled at 512x512 points (``--size``, ``--points``),
 bilinear and bicubic (``--filters``), every wrap mode (``--wraps``), forward
 and forward+backward (gradients to the texture and the uv). The peers, each
-timed interleaved with ours in rounds (a pause before every timed call:
-after a call torch's and Dr.Jit's worker threads spin for 10-20 ms and
-would slow the next call on a 2-core machine). Two tables: each timed call
+timed interleaved with ours in rounds, in a new order every round (a pause
+before every timed call: after a call torch's and Dr.Jit's worker threads
+spin for 10-20 ms and would slow the next call on a 2-core machine; in a
+fixed order, our planar bilinear clamp forward, timed right after
+Dr.Jit's, took 6.6-6.9 ms after a 30 ms pause, 3.4-4.8 ms shuffled). Two tables: each timed call
 the first after the pause, and the last of a run of ``--settle`` + 1 calls
 (a loop's time: on some VMs a call after the pause finds the caches emptied
 and its worker threads slow to wake, see difftex/testing/timing.py). The peers:
@@ -214,7 +216,8 @@ def table(args, tex, uv, peer, settle: int) -> list[str]:
                 has_peer = peer is not None and wrap in DRJIT_WRAPS
                 if has_peer:
                     fns.append(peer.step(filt, wrap, grad))
-                times = time_interleaved(fns, args.reps, warmup=2, pause=args.pause, settle=settle)
+                # in a new order every round: a call right after Dr.Jit's ran 2x slower even after the pause
+                times = time_interleaved(fns, args.reps, warmup=2, pause=args.pause, settle=settle, shuffle=True)
                 ours, gs, cl = times[0], times[1], times[2]
                 gb = bytes_moved(3, H, W, M, grad) / 1e6
                 rg = ratio_stats(ours, gs)
@@ -252,7 +255,7 @@ def run(args) -> list[str]:
     tri = ours_step(tex, uv, True, "auto", filter="trilinear", wrap="repeat", uv_dx=dx, uv_dy=dy)
     bil = ours_step(tex, uv, True, "auto", filter="bilinear", wrap="repeat")
     for settle in sorted({0, args.settle}):
-        a, b = time_interleaved([tri, bil], args.reps, warmup=2, pause=args.pause, settle=settle)
+        a, b = time_interleaved([tri, bil], args.reps, warmup=2, pause=args.pause, settle=settle, shuffle=True)
         r = ratio_stats(a, b)
         rows.append(f"- trilinear fwd+bwd {a.median:.2f} ms, bilinear fwd+bwd {b.median:.2f} ms: trilinear / bilinear "
                     f"{r[0]:.2f} [{r[1]:.2f}-{r[2]:.2f}] (repeat, {'in a loop' if settle else 'after a pause'})")
@@ -279,7 +282,7 @@ def main() -> None:
     p.add_argument("--out", default=None, help="also write the table to this markdown file")
     args = p.parse_args()
     head = (f"torch {torch.__version__}, {torch.get_num_threads()} threads, texture {args.size}^2 RGB float32, "
-            f"{args.points}^2 points ({args.uv}), median of {args.reps} interleaved rounds; {native_paths()}")
+            f"{args.points}^2 points ({args.uv}), median of {args.reps} interleaved rounds in shuffled order; {native_paths()}")
     print("# " + head)
     rows = run(args)
     if args.out:
