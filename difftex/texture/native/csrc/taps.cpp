@@ -787,10 +787,14 @@ __attribute__((target("avx2,fma"))) void backward8(const BackGroup8& grp, const 
   const int64_t C = CC > 0 ? CC : Cdyn;
   // The output gradient of each channel; points whose gradient is 0 in every channel write nothing (as
   // backward_point returns early: a zero weight times an infinite texel must not reach the uv gradient).
+  // A run-time channel count's vectors live on the heap, 32-byte aligned by hand: std::vector<__m256> drops
+  // the type's alignment (GCC ignores attributes on template arguments), and its 16-byte aligned storage
+  // crashed the aligned stores for C = 5.
   constexpr int CMAX = CC > 0 ? CC : 1;
-  std::vector<__m256> gheap(CC > 0 ? 0 : C);
+  std::vector<float> gheap(CC > 0 ? 0 : 8 * C + 7);
   __m256 gstack[CMAX];
-  __m256* g = CC > 0 ? gstack : gheap.data();
+  __m256* g = CC > 0 ? gstack
+                     : reinterpret_cast<__m256*>((reinterpret_cast<uintptr_t>(gheap.data()) + 31) & ~uintptr_t{31});
   __m256 any = _mm256_setzero_ps();
   for (int64_t c = 0; c < C; ++c) {
     alignas(32) float gc[8];
