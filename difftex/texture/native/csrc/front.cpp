@@ -114,13 +114,21 @@ DT_AVX2 __m256d clamp_level4(__m256d x, __m256d top) {
   return _mm256_min_pd(_mm256_max_pd(x, _mm256_setzero_pd()), top);
 }
 
+// Four points' derivative components (float32 at px, py, row strides xr, yr) and biases (at pb, or bias0
+// where null), as doubles.
+DT_AVX2 __m256d load4(const float* px, int64_t xr, const float* py, int64_t yr, const float* pb, const Front4& f,
+                      __m256d* dx0, __m256d* dx1, __m256d* dy0, __m256d* dy1) {
+  split4(pairs2(px, xr), pairs2(px + 2 * xr, xr), dx0, dx1);
+  split4(pairs2(py, yr), pairs2(py + 2 * yr, yr), dy0, dy1);
+  return pb ? _mm256_cvtps_pd(_mm_loadu_ps(pb)) : _mm256_set1_pd(f.bias0);
+}
+
 // trilinear_level of four points (float32 derivatives at px, py; biases at pb, or bias0 where null).
 DT_AVX2 void trilinear_level4(const float* px, int64_t xr, const float* py, int64_t yr, const float* pb,
                               const Front4& f, float* pD) {
   const __m256d zero = _mm256_setzero_pd(), far = _mm256_set1_pd(kFar);
   __m256d dx0, dx1, dy0, dy1;
-  split4(pairs2(px, xr), pairs2(px + 2 * xr, xr), &dx0, &dx1);
-  split4(pairs2(py, yr), pairs2(py + 2 * yr, yr), &dy0, &dy1);
+  const __m256d b = load4(px, xr, py, yr, pb, f, &dx0, &dx1, &dy0, &dy1);
   const auto len2 = [&](__m256d x, __m256d y) __attribute__((target("avx2,fma"))) {
     x = _mm256_mul_pd(x, f.W);
     y = _mm256_mul_pd(y, f.H);
@@ -135,7 +143,6 @@ DT_AVX2 void trilinear_level4(const float* px, int64_t xr, const float* py, int6
   __m256d v = _mm256_mul_pd(_mm256_set1_pd(0.5),
                             log2_4(_mm256_blendv_pd(longer, _mm256_set1_pd(1.0), _mm256_or_pd(small, large))));
   v = _mm256_blendv_pd(_mm256_blendv_pd(v, _mm256_sub_pd(zero, far), small), far, large);
-  const __m256d b = pb ? _mm256_cvtps_pd(_mm_loadu_ps(pb)) : _mm256_set1_pd(f.bias0);
   _mm_storeu_ps(pD, _mm256_cvtpd_ps(clamp_level4(_mm256_add_pd(v, b), f.top)));
 }
 
@@ -155,9 +162,7 @@ DT_AVX2 void front_taps4(const float* px, int64_t xr, const float* py, int64_t y
     return sub(zero, _mm256_floor_pd(sub(tol, x)));
   };
   __m256d dx0, dx1, dy0, dy1;
-  split4(pairs2(px, xr), pairs2(px + 2 * xr, xr), &dx0, &dx1);
-  split4(pairs2(py, yr), pairs2(py + 2 * yr, yr), &dy0, &dy1);
-  const __m256d bias = pb ? _mm256_cvtps_pd(_mm_loadu_ps(pb)) : _mm256_set1_pd(f.bias0);
+  const __m256d bias = load4(px, xr, py, yr, pb, f, &dx0, &dx1, &dy0, &dy1);
   const __m256d j0 = mul(dx0, f.W), j1 = mul(dx1, f.H), j2 = mul(dy0, f.W), j3 = mul(dy1, f.H);
   const __m256d top = max4(max4(abs4(j0), abs4(j1)), max4(abs4(j2), abs4(j3)));
   const __m256d nan = _mm256_or_pd(_mm256_cmp_pd(j0, j1, _CMP_UNORD_Q), _mm256_cmp_pd(j2, j3, _CMP_UNORD_Q));

@@ -811,15 +811,20 @@ struct Group16 {
   int64_t at;
 };
 
+// The even and the odd floats of the 32 in a then b.
+DT_AVX512 void deinterleave16(__m512 a, __m512 b, __m512& even, __m512& odd) {
+  const __m512i ev = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
+  even = _mm512_permutex2var_ps(a, ev, b);
+  odd = _mm512_permutex2var_ps(a, _mm512_add_epi32(ev, _mm512_set1_epi32(1)), b);
+}
+
 // Sixteen points' (u, v) from interleaved uv (cnt < 16: the first cnt); the live lanes (finite, below cnt)
 // as live_lanes: the others read (0.5, 0.5) and write nothing.
 DT_AVX512 __mmask16 load16(const float* uv, int cnt, __m512& u, __m512& v) {
   const __mmask16 lo = static_cast<__mmask16>(cnt >= 8 ? 0xFFFF : (1u << (2 * cnt)) - 1);
   const __mmask16 hi = static_cast<__mmask16>(cnt >= 16 ? 0xFFFF : cnt <= 8 ? 0 : (1u << (2 * (cnt - 8))) - 1);
   const __m512 a = _mm512_maskz_loadu_ps(lo, uv), b = _mm512_maskz_loadu_ps(hi, uv + 16);
-  const __m512i ev = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
-  u = _mm512_permutex2var_ps(a, ev, b);
-  v = _mm512_permutex2var_ps(a, _mm512_add_epi32(ev, _mm512_set1_epi32(1)), b);
+  deinterleave16(a, b, u, v);
   const __m512 z = _mm512_add_ps(_mm512_sub_ps(u, u), _mm512_sub_ps(v, v));
   const __mmask16 live = _mm512_cmp_ps_mask(z, _mm512_setzero_ps(), _CMP_EQ_OQ) &
                          static_cast<__mmask16>(cnt >= 16 ? 0xFFFF : (1u << cnt) - 1);
@@ -862,14 +867,11 @@ DT_AVX512 void pair_taps16(const Args<float>& A, Group16<K>& g) {
 // half-group.
 template <int N>
 DT_AVX512 void read_run16(const float* chan, __m512i at, __m512 (&v)[N]) {
-  const __m512i ev = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
-  const __m512i od = _mm512_add_epi32(ev, _mm512_set1_epi32(1));
   for (int h = 0; h < N / 2; ++h) {
     const __m512i idx = _mm512_add_epi32(at, _mm512_set1_epi32(2 * h));
     const __m512 lo = _mm512_castpd_ps(_mm512_i32gather_pd(_mm512_castsi512_si256(idx), chan, 4));
     const __m512 hi = _mm512_castpd_ps(_mm512_i32gather_pd(_mm512_extracti64x4_epi64(idx, 1), chan, 4));
-    v[2 * h] = _mm512_permutex2var_ps(lo, ev, hi);
-    v[2 * h + 1] = _mm512_permutex2var_ps(lo, od, hi);
+    deinterleave16(lo, hi, v[2 * h], v[2 * h + 1]);
   }
 }
 

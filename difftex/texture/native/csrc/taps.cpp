@@ -192,6 +192,11 @@ struct Reads8 {
   alignas(32) double wt[2][8], dwt[2][8];
 };
 
+// Level jr's weights of a Reads8's eight points in float32.
+DT_AVX2 __m256 level_weight8(const Reads8& r, int jr) {
+  return to_ps(_mm256_load_pd(r.wt[jr]), _mm256_load_pd(r.wt[jr] + 4));
+}
+
 // reads_of for eight points (D at pd[0 .. 8), or at pd[e[j]] where e is given), in vectors with its
 // operations (the same bits), when all read the same levels; false otherwise.
 DT_AVX2 bool reads8(const float* pd, const int64_t* e, int64_t K, bool nearest, bool d_grad, Reads8* r) {
@@ -812,10 +817,8 @@ __attribute__((target("avx2,fma"))) void backward8(const BackGroup8& grp, const 
   float(*share)[4][8] = CC > 0 ? sstack : reinterpret_cast<float(*)[4][8]>(sheap.data());
   for (int jr = 0; jr < grp.r.n; ++jr) {
     const int64_t k = grp.r.k[jr];
-    alignas(32) float wlf[8];
-    for (int j = 0; j < 8; ++j) wlf[j] = static_cast<float>(grp.r.wt[jr][j]);
     float* gk = out.gp[k];
-    level_grads8<kBorder>(grp.lv[jr], L[k], lp[k], C, g, _mm256_load_ps(wlf), bv, grp.r.wt[jr], grp.r.dwt[jr],
+    level_grads8<kBorder>(grp.lv[jr], L[k], lp[k], C, g, level_weight8(grp.r, jr), bv, grp.r.wt[jr], grp.r.dwt[jr],
                           gk != nullptr ? share : nullptr, du, dv, dD);
     if (gk == nullptr) continue;
     alignas(32) int32_t idx[4][8], in[4][8];
@@ -916,11 +919,7 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
   if (live == 0) return true;
   const int n = r.n;
   __m256 wl[2];
-  for (int jr = 0; jr < n; ++jr) {
-    alignas(32) float wlf[8];
-    for (int j = 0; j < 8; ++j) wlf[j] = static_cast<float>(r.wt[jr][j]);
-    wl[jr] = _mm256_load_ps(wlf);
-  }
+  for (int jr = 0; jr < n; ++jr) wl[jr] = level_weight8(r, jr);
   const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
   const __m256d zero = _mm256_setzero_pd();
   __m256d du[2], dv[2], dD[2], dax[2], day[2];
