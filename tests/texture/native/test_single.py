@@ -169,9 +169,15 @@ def test_a_channels_last_texture_is_read_in_place_with_the_planar_bits(B, Bt, C,
     # gradients are equal bit for bit. 1,300 points a batch entry: the banded scatter runs threaded. The
     # first four rows keep every tap inside the texture, in order, and clamp or mirror in u repeat or
     # reverse a lane's taps at the edges: the sixteen-point forward reads 3 and 4 interleaved channels as
-    # runs of pairs of floats there (pair_taps16).
+    # runs of pairs of floats there (pair_taps16). The planar backward adds a row's taps as one run of
+    # floats where they are adjacent texels (single.cpp run_lanes8), the interleaved one float by float:
+    # rows 4-7 step 0.65, 1, 1.3 and 2.6 texels a point along one texel row, so that runs overlap the runs
+    # of the points before them in part, exactly and not at all.
     tex, uv = _inputs(dtype, B=B, Bt=Bt, C=C, H=23, W=17, Ho=26, Wo=50, seed=C)
     uv[:, :4] = uv[:, :4].remainder(1.0) * 0.7 + 0.15
+    for row, step in zip(range(4, 8), (0.65, 1.0, 1.3, 2.6)):
+        uv[:, row, :, 0] = (0.3 + step * torch.arange(50, dtype=dtype)) / 17
+        uv[:, row, :, 1] = (row + 0.4) / 23
     interleaved = tex.contiguous(memory_format=torch.channels_last)
     assert C == 1 or not interleaved.is_contiguous()
     _assert_matches(interleaved, uv, "bicubic", ("mirror", "border"), TOL[dtype])

@@ -990,11 +990,81 @@ __attribute__((target("avx512f,avx512dq,avx2,fma"))) void forward_range_avx512(i
       });
 }
 
+// out[K * j + q] = s[q][j] (K = 2 or 4): eight points' K shares of a row of taps, each point's side by side.
+template <int K>
+DT_AVX2 void runs8(const __m256* s, float* out) {
+  const __m256 t0 = _mm256_unpacklo_ps(s[0], s[1]), t1 = _mm256_unpackhi_ps(s[0], s[1]);  // points 0 1 4 5, 2 3 6 7
+  if constexpr (K == 2) {
+    _mm256_storeu_ps(out, _mm256_permute2f128_ps(t0, t1, 0x20));
+    _mm256_storeu_ps(out + 8, _mm256_permute2f128_ps(t0, t1, 0x31));
+  } else {
+    const __m256 t2 = _mm256_unpacklo_ps(s[2], s[3]), t3 = _mm256_unpackhi_ps(s[2], s[3]);
+    const __m256 u[4] = {_mm256_shuffle_ps(t0, t2, 0x44), _mm256_shuffle_ps(t0, t2, 0xEE),
+                         _mm256_shuffle_ps(t1, t3, 0x44), _mm256_shuffle_ps(t1, t3, 0xEE)};  // points k and k + 4
+    for (int k = 0; k < 4; ++k) {
+      _mm_storeu_ps(out + 4 * k, _mm256_castps256_ps128(u[k]));
+      _mm_storeu_ps(out + 16 + 4 * k, _mm256_extractf128_ps(u[k], 1));
+    }
+  }
+}
+
+// at[0, K) += s[0, K) float by float (K = 2 or 4).
+template <int K>
+DT_AVX2 void add_run(float* at, const float* s) {
+  if constexpr (K == 2) {
+    const __m128 t = _mm_loadl_pi(_mm_setzero_ps(), reinterpret_cast<const __m64*>(at));
+    _mm_storel_pi(reinterpret_cast<__m64*>(at),
+                  _mm_add_ps(t, _mm_loadl_pi(_mm_setzero_ps(), reinterpret_cast<const __m64*>(s))));
+  } else {
+    _mm_storeu_ps(at, _mm_add_ps(_mm_loadu_ps(at), _mm_loadu_ps(s)));
+  }
+}
+
+// Of the lanes `adjacent` (eight points, in scatter order, whose K taps along a row are the K texels from
+// column x[j] on), those whose texture-gradient adds go a row at a time (add_run): not where a point's run
+// partly overlaps the run of one of the two points before it, nor where it meets exactly one added float by
+// float. There a K-float load would straddle earlier stores not yet written, which cannot forward to it and
+// stall it (measured, without this: a backward with points 0.65 texels apart 1.09-1.12x slower than float by
+// float). The same sums either way: each point adds once to each texel of a run, in the points' order.
+template <int K>
+DT_AVX2 int run_lanes8(__m256i x, int adjacent) {
+  const __m256i z = _mm256_setzero_si256(), k = _mm256_set1_epi32(K);
+  int part = 0, eq[3] = {0, 0, 0};
+  for (int back = 1; back <= 2; ++back) {
+    const __m256i before = _mm256_permutevar8x32_epi32(
+        x, back == 1 ? _mm256_setr_epi32(0, 0, 1, 2, 3, 4, 5, 6) : _mm256_setr_epi32(0, 1, 0, 1, 2, 3, 4, 5));
+    const __m256i d = _mm256_abs_epi32(_mm256_sub_epi32(x, before));
+    const int lanes = 0xFF << back & 0xFF;
+    const __m256i same = _mm256_cmpeq_epi32(d, z);
+    part |= _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_andnot_si256(same, _mm256_cmpgt_epi32(k, d)))) & lanes;
+    eq[back] = _mm256_movemask_ps(_mm256_castsi256_ps(same)) & lanes;
+  }
+  int vec = 0;
+  for (int j = 0, ok = adjacent & ~part; j < 8; ++j) {
+    const bool meets_float_adds = (eq[1] >> j & 1 && !(vec >> (j - 1) & 1)) || (eq[2] >> j & 1 && !(vec >> (j - 2) & 1));
+    vec |= (ok >> j & 1 && !meets_float_adds) << j;
+  }
+  return vec;
+}
+
+// The lanes whose K taps along a row are K adjacent texels in order (planar columns): all but a repeat seam,
+// a clamped edge and mirrored taps.
+template <int K>
+DT_AVX2 int adjacent8(const Group8<K>& g) {
+  __m256i same = _mm256_set1_epi32(-1);
+  for (int q = 1; q < K; ++q)
+    same = _mm256_and_si256(same, _mm256_cmpeq_epi32(g.cols[q], _mm256_add_epi32(g.cols[0], _mm256_set1_epi32(q))));
+  return _mm256_movemask_ps(_mm256_castsi256_ps(same));
+}
+
 // The backward of a group of points p[0..g.cnt) (any indices into [B * M]; the group's rows include each
 // point's texture offset): uv gradients into guv (not null), texture gradients scattered into gt (not null),
 // for the live lanes only. The taps, the uv gradient and each tap's share of the output gradient come eight
 // points at a time; the scatter adds the shares one point after another in the scalar loop's order (the sums
-// equal at any thread count, bands.h).
+// equal at any thread count, bands.h), a row's K shares as one add of K floats where the taps are adjacent
+// texels of a planar texture (run_lanes8). Measured (1024^2 RGB texture, 512^2 points of a rotated view,
+// 2 threads, in a loop, in one process with and without the runs): forward+backward 0.91-0.95x the time
+// for bilinear and 0.93x for bicubic with points 2.6 texels apart, 0.97-1.01x and 0.98-1.00x at 1.3 and 0.65.
 template <int K, int CC, bool kBorder>
 DT_AVX2 void backward8(const Args<float>& A, const Group8<K>& g, const int64_t* p, __m256i gofs, const float* grad,
                        float* gt, float* guv) {
@@ -1027,24 +1097,33 @@ DT_AVX2 void backward8(const Args<float>& A, const Group8<K>& g, const int64_t* 
   }
   if (gt == nullptr) return;
   alignas(32) int32_t idx[K][K][8], in[K][K][8];
-  alignas(32) float share[K][K][8];
   for (int r = 0; r < K; ++r)
     for (int q = 0; q < K; ++q) {
       _mm256_store_si256(reinterpret_cast<__m256i*>(idx[r][q]), _mm256_add_epi32(g.rows[r], g.cols[q]));
       if (kBorder) _mm256_store_si256(reinterpret_cast<__m256i*>(in[r][q]), _mm256_and_si256(g.ay.in[r], g.ax.in[q]));
     }
+  const int runs = !kBorder && A.xs == 1 ? run_lanes8<K>(g.cols[0], adjacent8(g)) : 0;
+  alignas(32) float run[K][8 * K];  // run[r][K * j + q]: point j's share of tap (r, q)
   for (int64_t c = 0; c < C; ++c) {
     const __m256 gc = _mm256_i32gather_ps(grad + c * M, gofs, 4);
     for (int r = 0; r < K; ++r) {
       const __m256 gr = _mm256_mul_ps(gc, g.ay.w[r]);
-      for (int q = 0; q < K; ++q) _mm256_store_ps(share[r][q], _mm256_mul_ps(gr, g.ax.w[q]));
+      __m256 sq[K];
+      for (int q = 0; q < K; ++q) sq[q] = _mm256_mul_ps(gr, g.ax.w[q]);
+      runs8<K>(sq, run[r]);
     }
     float* tc = gt + c * A.cs;
     for (int j = 0; j < g.cnt; ++j) {
       if (!(g.live >> j & 1)) continue;
-      for (int r = 0; r < K; ++r)
+      for (int r = 0; r < K; ++r) {
+        const float* sj = run[r] + K * j;
+        if (runs >> j & 1) {
+          add_run<K>(tc + idx[r][0][j], sj);
+          continue;
+        }
         for (int q = 0; q < K; ++q)
-          if (!kBorder || in[r][q][j]) tc[idx[r][q][j]] += share[r][q][j];
+          if (!kBorder || in[r][q][j]) tc[idx[r][q][j]] += sj[q];
+      }
     }
   }
 }
