@@ -830,10 +830,16 @@ __attribute__((target("avx2,fma"))) void backward8(const BackGroup8& grp, const 
       _mm256_store_si256(reinterpret_cast<__m256i*>(idx[q]), grp.lv[jr].t.idx[q]);
       if (kBorder) _mm256_store_si256(reinterpret_cast<__m256i*>(in[q]), grp.lv[jr].t.in[q]);
     }
-    for (int64_t c = 0; c < C; ++c) {
-      float* gq = gk + c * L[k].plane;
-      for (int j = 0; j < 8; ++j) {
-        if (!(live >> j & 1)) continue;
+    // Point after point, its channels one after another: on a level a point or so apart, neighbouring points
+    // add to the same texels, and each of those adds waits for the one before it to be stored; the other
+    // channels' adds between the two fill the wait (measured against channel after channel, 1024^2 RGB
+    // texture, 512^2 points, 2 threads: the trilinear step in 0.95-0.97x the time on a view of 2.6 texels a
+    // pixel, whose levels 1 and 2 hold points 1.3 and 0.65 texels apart; 1.01x on one magnified to 0.65
+    // texels a pixel). Each texel still gets its adds in the points' order.
+    for (int j = 0; j < 8; ++j) {
+      if (!(live >> j & 1)) continue;
+      for (int64_t c = 0; c < C; ++c) {
+        float* gq = gk + c * L[k].plane;
         for (int q = 0; q < 4; ++q)
           if (!kBorder || in[q][j]) gq[idx[q][j]] += share[c][q][j];
       }
