@@ -405,6 +405,41 @@ __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t 
                                       nearest, d_grad);
 }
 
+// The taps of eight points with N_j taps each along their axes: tap i at uv + o_i * axis with
+// o_i = tap_offset(i, N_j), in vectors with the scalar loop's operations (division, product, sum: the same bits).
+struct TapLine8 {
+  __m256d u[2], v[2], au[2], av[2], n[2];
+  __m256i n32;
+  // The eight points' uv, axis and tap counts N.
+  DT_AVX2 TapLine8(const double* pu, const double* pv, const double* pau, const double* pav, const int64_t* N) {
+    alignas(32) double nd[8];
+    alignas(32) int32_t c[8];
+    for (int j = 0; j < 8; ++j) nd[j] = static_cast<double>(N[j]), c[j] = static_cast<int32_t>(N[j]);
+    for (int h = 0; h < 2; ++h) {
+      u[h] = _mm256_loadu_pd(pu + 4 * h), v[h] = _mm256_loadu_pd(pv + 4 * h);
+      au[h] = _mm256_loadu_pd(pau + 4 * h), av[h] = _mm256_loadu_pd(pav + 4 * h);
+      n[h] = _mm256_load_pd(nd + 4 * h);
+    }
+    n32 = _mm256_load_si256(reinterpret_cast<const __m256i*>(c));
+  }
+  // Tap i's coordinates into tu, tv [8] and its offsets o (two halves).
+  DT_AVX2 void place(int64_t i, double* tu, double* tv, __m256d* o) const {
+    const __m256d k = _mm256_set1_pd(static_cast<double>(i) + 0.5), half = _mm256_set1_pd(0.5);
+    for (int h = 0; h < 2; ++h) {
+      o[h] = _mm256_sub_pd(_mm256_div_pd(k, n[h]), half);
+      _mm256_store_pd(tu + 4 * h, _mm256_add_pd(u[h], _mm256_mul_pd(o[h], au[h])));
+      _mm256_store_pd(tv + 4 * h, _mm256_add_pd(v[h], _mm256_mul_pd(o[h], av[h])));
+    }
+  }
+  // The lanes with a tap i (all ones).
+  DT_AVX2 __m256i on(int64_t i) const { return _mm256_cmpgt_epi32(n32, _mm256_set1_epi32(static_cast<int32_t>(i))); }
+  // The same as two halves of four 64-bit lanes.
+  DT_AVX2 void on_pd(int64_t i, __m256d* m) const {
+    const __m256d k = _mm256_set1_pd(static_cast<double>(i));
+    for (int h = 0; h < 2; ++h) m[h] = _mm256_cmp_pd(k, n[h], _CMP_LT_OQ);
+  }
+};
+
 // The forward of points [lo, hi) with N taps each (anisotropic, auto: count pc, axis pa), float32, eight
 // points at a time where the eight read the same levels (most groups: the level follows the footprint); the
 // channel count fixed at compile time (CC > 0). Tap i runs in the lanes with i < N_j. It is placed as the
@@ -439,16 +474,17 @@ __attribute__((target("avx2,fma"))) void forward_taps_avx2(int64_t lo, int64_t h
     }
     __m256 acc[CC > 0 ? CC : 1];
     for (int c = 0; c < CC; ++c) acc[c] = _mm256_setzero_ps();
+    alignas(32) double u[8], v[8], au[8], av[8];
+    for (int j = 0; j < 8; ++j) {
+      u[j] = puv[2 * (e + j)], v[j] = puv[2 * (e + j) + 1];
+      au[j] = pa[2 * (e + j)], av[j] = pa[2 * (e + j) + 1];
+    }
+    const TapLine8 line(u, v, au, av, N);
     for (int64_t i = 0; i < most; ++i) {
       alignas(32) double tu[8], tv[8];
-      alignas(32) int32_t on[8];  // lanes with a tap i: all ones
-      for (int j = 0; j < 8; ++j) {
-        const double o = tap_offset(i, N[j]);
-        tu[j] = static_cast<double>(puv[2 * (e + j)]) + o * static_cast<double>(pa[2 * (e + j)]);
-        tv[j] = static_cast<double>(puv[2 * (e + j) + 1]) + o * static_cast<double>(pa[2 * (e + j) + 1]);
-        on[j] = i < N[j] ? -1 : 0;
-      }
-      const __m256 mask = _mm256_castsi256_ps(_mm256_load_si256(reinterpret_cast<const __m256i*>(on)));
+      __m256d o[2];
+      line.place(i, tu, tv, o);
+      const __m256 mask = _mm256_castsi256_ps(line.on(i));
       for (int jr = 0; jr < r.n; ++jr) {
         const Level& lv = L[r.k[jr]];
         Place8 px, py;
@@ -948,16 +984,12 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
   for (int h = 0; h < 2; ++h) du[h] = dv[h] = dD[h] = dax[h] = day[h] = zero;
   alignas(32) int32_t idx[kMaxTaps8][2][4][8], in[kMaxTaps8][2][4][8];
   alignas(32) float share[kMaxTaps8][2][CC][4][8];
+  const TapLine8 line(u, v, au, av, N);
   for (int64_t i = 0; i < most; ++i) {
-    alignas(32) double o[8], tu[8], tv[8];
-    alignas(32) int64_t on[8];  // lanes with a tap i: all ones
-    for (int j = 0; j < 8; ++j) {
-      o[j] = tap_offset(i, N[j]);
-      tu[j] = u[j] + o[j] * au[j], tv[j] = v[j] + o[j] * av[j];
-      on[j] = i < N[j] ? -1 : 0;
-    }
-    const __m256d mask[2] = {_mm256_load_pd(reinterpret_cast<const double*>(on)),
-                             _mm256_load_pd(reinterpret_cast<const double*>(on + 4))};
+    alignas(32) double tu[8], tv[8];
+    __m256d o[2], mask[2];  // mask: the lanes with a tap i, all ones
+    line.place(i, tu, tv, o);
+    line.on_pd(i, mask);
     __m256d tdu[2] = {zero, zero}, tdv[2] = {zero, zero};
     for (int jr = 0; jr < n; ++jr) {
       const int64_t k = r.k[jr];
@@ -973,11 +1005,10 @@ __attribute__((target("avx2,fma"))) bool backward_taps8(const int64_t* e, const 
         }
     }
     for (int h = 0; h < 2; ++h) {
-      const __m256d o4 = _mm256_load_pd(o + 4 * h);
       du[h] = _mm256_blendv_pd(du[h], _mm256_add_pd(du[h], tdu[h]), mask[h]);
       dv[h] = _mm256_blendv_pd(dv[h], _mm256_add_pd(dv[h], tdv[h]), mask[h]);
-      dax[h] = _mm256_blendv_pd(dax[h], _mm256_add_pd(dax[h], _mm256_mul_pd(o4, tdu[h])), mask[h]);
-      day[h] = _mm256_blendv_pd(day[h], _mm256_add_pd(day[h], _mm256_mul_pd(o4, tdv[h])), mask[h]);
+      dax[h] = _mm256_blendv_pd(dax[h], _mm256_add_pd(dax[h], _mm256_mul_pd(o[h], tdu[h])), mask[h]);
+      day[h] = _mm256_blendv_pd(day[h], _mm256_add_pd(day[h], _mm256_mul_pd(o[h], tdv[h])), mask[h]);
     }
   }
   for (int j = 0; j < 8; ++j) {
