@@ -1122,15 +1122,23 @@ __attribute__((target("avx2,fma"))) void tap_keys4(int64_t lo, int64_t hi, const
     __m256d pending = ok, key = zero;
     const __m256d e0 = _mm256_add_pd(b0, one), e1 = _mm256_add_pd(b1, one);
     double nbs = static_cast<double>(T.nb0);
-    for (int64_t sc = 0; sc < T.scales && _mm256_movemask_pd(pending); ++sc, nbs *= 0.5) {
+    // The finest scale's bands, floor(a nb0 / h) (exact: the quotient is under 2^11, the nearest double to it
+    // is an integer only where it is one); a coarser scale's band is floor(that / 2^s), exactly the same as
+    // floor(a (nb0 / 2^s) / h), so the loop needs no division (measured, in one process with and without:
+    // the trilinear step 0.985x).
+    const __m256d nb0 = _mm256_set1_pd(nbs);
+    const __m256d fine = _mm256_min_pd(_mm256_floor_pd(_mm256_div_pd(_mm256_mul_pd(a0, nb0), h0)),
+                                       _mm256_floor_pd(_mm256_div_pd(_mm256_mul_pd(a1, nb0), h1)));
+    double scale = 1.0;  // 2^-s
+    for (int64_t sc = 0; sc < T.scales && _mm256_movemask_pd(pending); ++sc, nbs *= 0.5, scale *= 0.5) {
       const __m256d nb = _mm256_set1_pd(nbs);
-      const __m256d band = _mm256_min_pd(_mm256_floor_pd(_mm256_div_pd(_mm256_mul_pd(a0, nb), h0)),
-                                         _mm256_floor_pd(_mm256_div_pd(_mm256_mul_pd(a1, nb), h1)));
+      const __m256d band = _mm256_floor_pd(_mm256_mul_pd(fine, _mm256_set1_pd(scale)));
       const __m256d room = _mm256_add_pd(band, two);
       const __m256d fits = _mm256_and_pd(_mm256_cmp_pd(_mm256_mul_pd(e0, nb), _mm256_mul_pd(room, h0), _CMP_LE_OQ),
                                          _mm256_cmp_pd(_mm256_mul_pd(e1, nb), _mm256_mul_pd(room, h1), _CMP_LE_OQ));
       // band mod nb (a power of two: the quotient is exact), plus the scale's first key
-      const __m256d wrapped = _mm256_sub_pd(band, _mm256_mul_pd(nb, _mm256_floor_pd(_mm256_div_pd(band, nb))));
+      const __m256d wrapped =
+          _mm256_sub_pd(band, _mm256_mul_pd(nb, _mm256_floor_pd(_mm256_mul_pd(band, _mm256_set1_pd(1.0 / nbs)))));
       key = _mm256_blendv_pd(key, _mm256_add_pd(wrapped, _mm256_set1_pd(static_cast<double>(T.offset[sc]))),
                              _mm256_and_pd(pending, fits));
       pending = _mm256_andnot_pd(fits, pending);
