@@ -1129,10 +1129,9 @@ __attribute__((target("avx2,fma"))) void tap_keys4(int64_t lo, int64_t hi, const
     const __m256d nb0 = _mm256_set1_pd(nbs);
     const __m256d fine = _mm256_min_pd(_mm256_floor_pd(_mm256_div_pd(_mm256_mul_pd(a0, nb0), h0)),
                                        _mm256_floor_pd(_mm256_div_pd(_mm256_mul_pd(a1, nb0), h1)));
-    double scale = 1.0;  // 2^-s
-    for (int64_t sc = 0; sc < T.scales && _mm256_movemask_pd(pending); ++sc, nbs *= 0.5, scale *= 0.5) {
+    for (int64_t sc = 0; sc < T.scales && _mm256_movemask_pd(pending); ++sc, nbs *= 0.5) {
       const __m256d nb = _mm256_set1_pd(nbs);
-      const __m256d band = _mm256_floor_pd(_mm256_mul_pd(fine, _mm256_set1_pd(scale)));
+      const __m256d band = _mm256_floor_pd(_mm256_mul_pd(fine, _mm256_set1_pd(nbs / static_cast<double>(T.nb0))));
       const __m256d room = _mm256_add_pd(band, two);
       const __m256d fits = _mm256_and_pd(_mm256_cmp_pd(_mm256_mul_pd(e0, nb), _mm256_mul_pd(room, h0), _CMP_LE_OQ),
                                          _mm256_cmp_pd(_mm256_mul_pd(e1, nb), _mm256_mul_pd(room, h1), _CMP_LE_OQ));
