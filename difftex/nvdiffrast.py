@@ -249,6 +249,8 @@ def _raster_layers(glctx: object, pos: object, tri: object, resolution: object, 
     if ranges.shape[1] != 2 or ranges.device.type != "cpu":
         raise ValueError(f"ranges: expected an int32 CPU tensor [minibatch_size, 2] of (start, count), "
                          f"got {describe(ranges)}")
+    if ranges.shape[0] == 0:  # an empty minibatch: as instanced mode with none
+        return [visible_layers(pos[None][:0], faces, hw, False, _packer(0, ctx.output_db, grad_db))]
     pieces = []
     for start, count in ranges.tolist():
         if start < 0 or count < 0 or start + count > faces.shape[0]:
@@ -413,6 +415,8 @@ def interpolate(attr: Tensor, rast: Tensor, tri: Tensor, rast_db: Optional[Tenso
         sel = [int(i) for i in diff_attrs]
         if any(i < 0 or i >= A for i in sel):
             raise ValueError(f"diff_attrs: indices must lie in [0, {A - 1}], got {list(diff_attrs)}")
+    if not sel:  # nothing to differentiate (nvdiffrast takes an empty list as None)
+        return out, out.new_zeros((B, H, W, 0))
     if sel != list(range(A)):  # advanced indexing copies: only for a true subset
         d0, d1 = d0[:, sel], d1[:, sel]
     db = rast_db.reshape(-1, 4).index_select(0, idx)
@@ -522,7 +526,8 @@ def _unit_footprint(uv: Tensor, shape_hw: tuple[int, int]) -> tuple[Tensor, Tens
 
 
 def _cube_at_level(pyramid: CubeMipmap, dirs: Tensor, bias: Tensor, nearest: bool) -> Tensor:
-    """A cube map read at the level ``clamp(bias, 0, top)`` itself: bilinear per level, tent (or round) weights.
+    """A cube map read at the level ``clamp(bias, 0, top)`` itself: bilinear per level, tent weights (or the
+    nearest level, halves rounded up as ``mip_blend`` rounds them for the 2D textures).
 
     Synthetic derivatives cannot fix the level on a cube: near an edge the
     cube's level blends with the neighbouring face's footprint.
@@ -531,7 +536,7 @@ def _cube_at_level(pyramid: CubeMipmap, dirs: Tensor, bias: Tensor, nearest: boo
     D = bias.clamp(0, top)
     out = None
     for k, lv in enumerate(pyramid.levels):
-        w = (D.round() == k).to(D.dtype) if nearest else (1 - (D - k).abs()).clamp(min=0)
+        w = (torch.floor(D + 0.5) == k).to(D.dtype) if nearest else (1 - (D - k).abs()).clamp(min=0)
         if not bool((w > 0).any()):
             continue
         term = cubemap(lv, dirs, filter="bilinear") * w.unsqueeze(1)

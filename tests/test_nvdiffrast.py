@@ -449,3 +449,28 @@ def test_interpolate_reuses_rasterize_coverage_only_while_rast_is_unchanged():
         r, _ = dr.rasterize(CTX, pos, tri, (24, 28))
         d, _ = dr.interpolate(uv, r, tri)
     assert torch.equal(d, a)
+
+
+def test_empty_diff_attrs_and_empty_ranges():
+    # nvdiffrast takes diff_attrs=[] as None; ranges [0, 2] is a minibatch of none.
+    pos = torch.tensor([[-0.8, -0.8, 0.0, 1.0], [0.8, -0.8, 0.0, 1.0], [0.0, 0.8, 0.0, 1.0]])
+    tri = torch.tensor([[0, 1, 2]], dtype=torch.int32)
+    rast, db = dr.rasterize(CTX, pos[None], tri, (4, 4))
+    out, da = dr.interpolate(torch.rand(3, 2), rast, tri, db, diff_attrs=[])
+    assert out.shape == (1, 4, 4, 2) and da.shape == (1, 4, 4, 0)
+    rast, db = dr.rasterize(CTX, pos, tri, (4, 4), ranges=torch.zeros(0, 2, dtype=torch.int32))
+    assert rast.shape == (0, 4, 4, 4) and db.shape == (0, 4, 4, 4)
+
+
+def test_cube_mip_nearest_rounds_half_levels_as_2d():
+    # The cube path once rounded half to even (level 0.5 -> 0), the 2D path half up (-> 1).
+    from difftex.envmap.cube import cube_mipmap
+    g = torch.Generator().manual_seed(13)
+    cube = torch.rand(1, 6, 16, 16, 1, generator=g, dtype=torch.float64)
+    d = torch.tensor([[[[0.31, -0.17, -1.0]]]], dtype=torch.float64)
+    levels = cube_mipmap(cube.permute(0, 1, 4, 2, 3)).levels
+    for bias, k in ((0.5, 1), (1.49, 1), (2.5, 3)):
+        got = dr.texture(cube, d, mip_level_bias=torch.full((1, 1, 1), bias, dtype=torch.float64),
+                         filter_mode="linear-mipmap-nearest", boundary_mode="cube")
+        ref = dr.texture(levels[k].permute(0, 1, 3, 4, 2).contiguous(), d, filter_mode="linear", boundary_mode="cube")
+        torch.testing.assert_close(got, ref, rtol=0, atol=1e-12)

@@ -145,7 +145,7 @@ import torch
 from torch import Tensor
 
 from .._checks import broadcast_batch, check_float, check_same, describe
-from ..mapping.common import EPS, cube_tables, pick
+from ..mapping.common import cube_tables, dir_floor, pick
 from ..texture.filters.separable import separable_sample
 from ..texture.filters.trilinear import mip_blend, per_level, spread_taps
 from ..texture.options import (DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_bias, check_filter,
@@ -380,8 +380,9 @@ def cubemap(
             +z, -z) and the orientation of :func:`direction_to_cube` (row 0
             of a face is t = 0); or a :class:`CubeMipmap` (``cube_mipmap``).
             B = 1 broadcasts over the directions' batch.
-        dirs: [B, H, W, 3] directions, any non-zero length (only the
-            direction matters). B = 1 broadcasts.
+        dirs: [B, H, W, 3] directions of any length from 1e-18 (float32;
+            1e-100 in float64) up: only the direction matters. B = 1
+            broadcasts.
         filter: "nearest", "bilinear", "bicubic", or the mip filters
             "trilinear", "nearest-mip", "anisotropic", "auto", "ewa" (as in
             ``difftex.sample``; "ripmap" and "sat" are not supported;
@@ -636,7 +637,7 @@ def _bilinear(cube: Union[Tensor, CubeMipmap], dirs: Tensor, B: int) -> Tensor:
     P = n + 2
     atlas = cube.atlas(0, 1) if isinstance(cube, CubeMipmap) else _atlas(cube, 1)
     face, sc, tc, ma, _, _, _ = _face_coords(dirs, [])
-    inv = 1.0 / ma.clamp_min(EPS)
+    inv = 1.0 / torch.where(ma >= dir_floor(ma.dtype), ma, torch.inf)  # the zero vector: the face centre
     grid = torch.stack([sc * inv * (n / P), tc * inv * (n / (6 * P)) + (face.to(sc.dtype) / 3 - 5 / 6)], -1)
     grid = grid.expand(B, *grid.shape[1:])
     if atlas.shape[0] != B:
@@ -698,12 +699,12 @@ def _face_derivs(dirs: Tensor, dds: list[Tensor], face: Tensor, use: Tensor) -> 
     sc_sg, tc_sg, ma_sg = (t.to(dirs.dtype) for t in (sc_sg, tc_sg, ma_sg))
     sc, tc = sc_sg * pick(dirs, sc_ax), tc_sg * pick(dirs, tc_ax)
     # Unused entries (a face the direction may be orthogonal to) compute with m_a = 1: no inf, no NaN gradient.
-    ma = torch.where(use, ma_sg * pick(dirs, ma_ax), 1.0).clamp_min(EPS)
+    ma = torch.where(use, ma_sg * pick(dirs, ma_ax), 1.0).clamp_min(dir_floor(dirs.dtype))
+    s, t = sc / ma, tc / ma
     out = []
     for dd in dds:
         dsc, dtc, dma = sc_sg * pick(dd, sc_ax), tc_sg * pick(dd, tc_ax), ma_sg * pick(dd, ma_ax)
-        out.append(torch.stack([0.5 * (dsc * ma - sc * dma) / (ma * ma),
-                                0.5 * (dtc * ma - tc * dma) / (ma * ma)], dim=-1))
+        out.append(torch.stack([0.5 * (dsc - s * dma) / ma, 0.5 * (dtc - t * dma) / ma], dim=-1))
     return out
 
 

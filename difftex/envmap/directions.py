@@ -11,8 +11,9 @@ from typing import Optional
 import torch
 
 from .._checks import check_float, check_same, describe
+from ..geometry.raster import pow2_normalise
 from ..mapping.common import (
-    EPS, UVResult, check_derivs, check_tensor, cube_tables, result, sphere_uv,
+    UVResult, check_derivs, check_tensor, cube_tables, dir_floor, result, sphere_uv,
 )
 
 
@@ -29,7 +30,8 @@ def direction_to_equirect_uv(dirs: torch.Tensor, *,
     seam (u = 1 -> 0) is behind, at +z.  Inverse: :func:`equirect_uv_to_direction`.
 
     Args:
-        dirs: [..., 3] directions, any non-zero length.
+        dirs: [..., 3] directions of any length from 1e-18 (float32; 1e-100
+            in float64) up: only the direction matters.
         dirs_dx, dirs_dy: optional [..., 3] d(dir)/d(pixel column / row), e.g.
             of the reflected view vector.
 
@@ -44,6 +46,10 @@ def direction_to_equirect_uv(dirs: torch.Tensor, *,
     """
     dirs = check_tensor(dirs, "dirs", 3)
     dds = check_derivs(dirs_dx, dirs_dy, "dirs", 3, dirs)
+    # A power of two per direction brings its largest component into [0.5, 1) exactly (the angles and their
+    # derivatives do not change): sphere_uv's axis test is an absolute length, which a short direction is under.
+    m = dirs.detach().abs().amax(-1, keepdim=True)
+    dirs, dds = pow2_normalise(dirs, m), [pow2_normalise(d, m) for d in dds]
     uv, duv = sphere_uv(-dirs[..., 2], dirs[..., 0], dirs[..., 1],
                          [-d[..., 2] for d in dds], [d[..., 0] for d in dds], [d[..., 1] for d in dds])
     return result(uv, duv)
@@ -83,7 +89,8 @@ def direction_to_cube(dirs: torch.Tensor, *,
     t = 0 as the faces are stored in files.  The face centre is (0.5, 0.5).
 
     Args:
-        dirs: [..., 3] directions, any non-zero length.
+        dirs: [..., 3] directions of any length from 1e-18 (float32; 1e-100
+            in float64) up: only the direction matters.
         dirs_dx, dirs_dy: optional [..., 3] d(dir)/d(pixel column / row).
 
     Returns:
@@ -99,10 +106,12 @@ def direction_to_cube(dirs: torch.Tensor, *,
     dirs = check_tensor(dirs, "dirs", 3)
     dds = check_derivs(dirs_dx, dirs_dy, "dirs", 3, dirs)
     face, sc, tc, ma, dsc, dtc, dma = _face_coords(dirs, dds)
-    ma = ma.clamp_min(EPS)  # > 0 except for the zero vector
-    uv = torch.stack([0.5 * (sc / ma + 1.0), 0.5 * (tc / ma + 1.0)], dim=-1)
-    duv = [torch.stack([0.5 * (a * ma - sc * c) / (ma * ma), 0.5 * (b * ma - tc * c) / (ma * ma)], dim=-1)
-           for a, b, c in zip(dsc, dtc, dma)]
+    # Below the floor (the zero vector) m_a = inf: the face centre, zero derivatives, no gradient.
+    ma = torch.where(ma >= dir_floor(ma.dtype), ma, torch.inf)
+    s, t = sc / ma, tc / ma
+    uv = torch.stack([0.5 * (s + 1.0), 0.5 * (t + 1.0)], dim=-1)
+    # d(s_c / m_a) = (d s_c - (s_c / m_a) d m_a) / m_a: no m_a^2, which underflows for short float32 directions.
+    duv = [torch.stack([0.5 * (a - s * c) / ma, 0.5 * (b - t * c) / ma], dim=-1) for a, b, c in zip(dsc, dtc, dma)]
     return (face, uv, duv[0], duv[1]) if duv else (face, uv)
 
 

@@ -103,8 +103,8 @@ def equirect(
             :func:`difftex.envmap.direction_to_equirect_uv` (row 0 is +y,
             the centre column -z, the seam u = 0 / 1 at +z), usually
             He = We / 2; or a Mipmap of one.  B = 1 broadcasts over dirs.
-        dirs: [B, H, W, 3] directions, y up, any non-zero length (they are
-            normalised here).  B = 1 broadcasts over env.
+        dirs: [B, H, W, 3] directions, y up, of any length from 1e-18
+            (float32; 1e-100 in float64) up (they are normalised here).  B = 1 broadcasts over env.
         filter: any filter of :func:`difftex.sample`; the mip filters
             ("trilinear", "nearest-mip", "anisotropic", "ewa", "auto") need
             dirs_dx and dirs_dy.

@@ -56,7 +56,7 @@ import torch
 from torch import Tensor
 
 from .._checks import check_float, check_index, describe
-from .raster import Fragments
+from .raster import Fragments, pow2_normalise
 
 __all__ = ["antialias", "silhouette_edges", "RINGS"]
 
@@ -196,8 +196,7 @@ def _pairs(color: Tensor, frags: Fragments, pos: Tensor, faces: Tensor, sil: Ten
     v = pos.reshape(-1, 4).index_select(0, vid.reshape(-1)).view(-1, 3, 4)  # [N * 4, 3, 4]
     # A positive factor per triangle leaves every homogeneous line and
     # crossing unchanged and keeps the products below from overflowing.
-    _, ex = torch.frexp(v.detach().abs().amax(dim=(1, 2)))
-    v = v * torch.ldexp(torch.ones_like(v[:, 0, 0]), -ex)[:, None, None]
+    v = pow2_normalise(v, v.detach().abs().amax(dim=(1, 2), keepdim=True))
     h1, h2 = v.roll(-1, 1), v.roll(-2, 1)  # edge k joins corners k + 1, k + 2
     h1, h2 = h1.reshape(-1, n_c * 3, 4), h2.reshape(-1, n_c * 3, 4)  # [N, 12, 4]
     X1, Y1, W1 = h1[..., 0], h1[..., 1], h1[..., 3]

@@ -182,17 +182,20 @@ def _check_memory(B: int, H: int, W: int, dtype: torch.dtype) -> None:
                          f"at a time or smaller tiles, or raise the limit")
 
 
-def _pow2_scale(v: Tensor) -> Tensor:
-    """Per-triangle power-of-two factor bringing max |coordinate| into [0.5, 1).
+def pow2_normalise(x: Tensor, m: Tensor) -> Tensor:
+    """``x`` times ``2^-e``, where ``frexp(m) = (f, 2^e)``, ``f`` in [0.5, 1): ``m`` scaled into [0.5, 1).
 
-    Scaling all corners of a triangle by one factor leaves its
-    perspective-correct barycentrics and depth unchanged, and keeps huge
-    inputs from overflowing the cross products. ``v``: [..., 3, 4] -> [...].
-    Detached: the outputs do not depend on it.
+    The factor is a power of two, so the product is exact; it scales a
+    homogeneous point (or all corners of a triangle) without moving it, and
+    keeps huge inputs from overflowing the products taken after. ``m`` >= 0
+    broadcasts against ``x``; 0 and non-finite ``m`` leave ``x`` as it is.
+    The factor is applied in two halves: for a subnormal ``m`` (below 2^-126
+    in float32) ``2^-e`` alone overflows to inf.
     """
-    m = v.detach().abs().amax(dim=(-1, -2))
-    _, exp = torch.frexp(m)
-    return torch.ldexp(torch.ones_like(m), -exp)
+    _, e = torch.frexp(m.detach())
+    h = torch.div(e, 2, rounding_mode="floor")
+    one = torch.ones_like(m)
+    return x * torch.ldexp(one, -h) * torch.ldexp(one, h - e)
 
 
 def _pixel_centres(n: int, dtype: torch.dtype, device: torch.device, flip: bool) -> Tensor:
@@ -506,8 +509,7 @@ def _prepare(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool) -
     # a homogeneous vertex does not move it, so coverage and depth are
     # unchanged, products stay exact (shared edges agree) and huge inputs
     # cannot overflow.
-    _, ex = torch.frexp(raw.abs().amax(-1))
-    pv = raw * torch.ldexp(torch.ones_like(ex, dtype=raw.dtype), -ex)[:, None]
+    pv = pow2_normalise(raw, raw.abs().amax(-1, keepdim=True))
     X, Y, Z, Wc = pv.unbind(-1)
 
     # Early cull with outcodes: all corners beyond the same clip plane (valid
@@ -647,7 +649,7 @@ def _visibility(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool
         fz, fid = floor if floor is not None else (empty_z, torch.empty(0, dtype=torch.int64))
         tri_id, zbuf = mod.raster(pos.contiguous(), faces.contiguous(), H, W, cull_backfaces,
                                   _subpixel_bits(H, W), fz.contiguous(), fid.contiguous(), layers=layers)
-        if tri_id.numel() == 0:  # the kernel found a non-finite position or a bad index: name it
+        if tri_id.numel() == 0 and B > 0:  # the kernel found a non-finite position or a bad index: name it
             _check_pos(pos)
             check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
             raise RuntimeError("rasterize: the native kernel rejected its input")  # not reached
@@ -715,7 +717,7 @@ def _bary_at(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, T
     division is guarded so that degenerate input gives finite values and
     finite gradients (the "double where" pattern).
     """
-    v = v * _pow2_scale(v)[:, None, None]  # invariant: homogeneous scale
+    v = pow2_normalise(v, v.detach().abs().amax(dim=(-1, -2), keepdim=True))  # invariant: homogeneous scale
     # Corner j and k of edge i (opposite corner i), all three edges at once.
     vj = v.roll(-1, dims=1)  # roll: much cheaper than fancy indexing on CPU
     vk = v.roll(-2, dims=1)
@@ -869,7 +871,10 @@ def rasterize(
 
     ``bary``, ``depth``, ``bary_dx`` and ``bary_dy`` are differentiable with
     respect to ``pos`` (the perspective-correct formula); which triangle is
-    visible is not. Raises TypeError on bad dtypes, ValueError naming the
+    visible is not. Their gradients scale as 1 / |corner|: where every corner
+    of a visible triangle is subnormal (below 1.2e-38 in float32), the
+    values are still exact but the position gradients overflow the dtype
+    (inf, or NaN where two overflows meet). Raises TypeError on bad dtypes, ValueError naming the
     argument on bad shapes, out-of-range faces or non-finite positions, and
     ValueError naming ``resolution`` and the batch where the per-pixel
     buffers would exceed :data:`MAX_BYTES` (16 GiB by default).

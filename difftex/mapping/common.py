@@ -14,6 +14,19 @@ import torch
 #: lying on the axis / at the centre of a polar mapping; see the module notes.
 EPS = 1e-9
 
+#: Floor of a cube face's m_a (the major component of a direction, or its
+#: component along a neighbouring face's axis) in float64: its square stays
+#: a normal number (the native kernel's i2), and directions down to it map
+#: exactly. (An absolute 1e-9 once sent shorter directions to the wrong texel.)
+DIR_FLOOR = 1e-150
+
+
+def dir_floor(dtype: torch.dtype) -> float:
+    """The floor of m_a in ``dtype``: DIR_FLOOR in float64; 1e-30 in float32 (and narrower), where the
+    reciprocals taken of it and their products with a face's derivatives stay finite."""
+    return DIR_FLOOR if dtype == torch.float64 else 1e-30
+
+
 #: Cube-map face order (OpenGL ``GL_TEXTURE_CUBE_MAP_POSITIVE_X + i``).
 CUBE_FACES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
 

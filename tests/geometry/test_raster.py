@@ -579,3 +579,21 @@ def test_bad_values_named_on_both_paths(name):
         batch[1, -1, 3] = float("nan")
         with pytest.raises(ValueError, match="pos contains non-finite"):
             rasterize(batch, faces, (16, 16))
+
+
+def test_an_empty_batch_gives_empty_fragments():
+    # The native kernel signals bad input with an empty result, which an empty batch also is.
+    fr = difftex.rasterize(torch.zeros(0, 3, 4), torch.tensor([[0, 1, 2]]), (4, 5))
+    assert fr.tri_id.shape == (0, 4, 5) and fr.bary.shape == (0, 4, 5, 3)
+
+
+@pytest.mark.parametrize("dtype, scale", [(torch.float32, 1e-40), (torch.float64, 1e-310)])
+def test_subnormal_corners_give_the_unit_triangles_values(dtype, scale):
+    # 2^-e for a subnormal coordinate overflowed to inf, and inf * 0 made the barycentrics NaN.
+    faces = torch.tensor([[0, 1, 2]])
+    unit = torch.tensor([[[-1.0, -1, 0.5, 1], [1, -1, 0.5, 1], [0, 1, 0.5, 1]]], dtype=dtype)
+    ref = difftex.rasterize(unit, faces, (4, 4))
+    got = difftex.rasterize(unit * scale, faces, (4, 4))
+    assert torch.equal(got.tri_id, ref.tri_id) and int((got.tri_id >= 0).sum()) == 8
+    for name in ("bary", "bary_dx", "bary_dy", "depth"):
+        torch.testing.assert_close(getattr(got, name), getattr(ref, name), rtol=0, atol=1e-6, msg=name)

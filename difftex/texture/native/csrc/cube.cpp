@@ -36,8 +36,8 @@ constexpr int kTcAx[6] = {1, 1, 2, 2, 1, 1};
 constexpr double kTcSg[6] = {-1, -1, 1, -1, -1, -1};
 constexpr int kMaAx[6] = {0, 0, 1, 1, 2, 2};
 constexpr double kMaSg[6] = {1, -1, 1, -1, 1, -1};
-// mapping/common.py EPS: the floor of m_a.
-constexpr double kEps = 1e-9;
+// mapping/common.py DIR_FLOOR: the floor of m_a (its square, in i2, stays a normal double).
+constexpr double kEps = 1e-150;
 constexpr double kLn2 = 0.69314718055994530942;
 
 // log2 of a finite x > 0, faster than std::log2 here: the exponent from the bits, and the mantissa m in
@@ -85,7 +85,7 @@ DT_INLINE void to_xyz(int f, double g1, double g2, double g3, double* out) {
 
 // log2 of the trilinear length (lod.py log2_length: max of the two derivative lengths, in texels; NaN or 0
 // -> -FAR, inf -> +FAR, no gradient there) of the footprint (x, y) of direction d projected on face f
-// (not necessarily d's own: m_a floored at EPS as cube.py _face_derivs), with what its gradient needs.
+// (not necessarily d's own: m_a floored at DIR_FLOOR as cube.py _face_derivs), with what its gradient needs.
 struct Measure {
   int f;
   bool live;  // a finite, non-zero length (else m is +-FAR, constant)

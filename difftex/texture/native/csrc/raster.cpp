@@ -97,7 +97,9 @@ struct Exact {
 // 2^-e where frexp(m) = f 2^e (f in [0.5, 1)): the float path's scale of a
 // vertex whose largest |coordinate| is m >= 0, from the exponent bits (the
 // libm frexp / ldexp calls cost more than the rest of the vertex pass);
-// zero, subnormal, non-finite or huge m take the libm route.
+// zero, subnormal, non-finite or huge m take the libm route. A subnormal m
+// gets the largest finite factor instead (2^1023; 2^127 for float), which
+// brings it into [2^-51, 2) ([2^-22, 2) for float): no overflow, no inf.
 inline double pow2_scale(double m) {
   uint64_t bits;
   std::memcpy(&bits, &m, 8);
@@ -106,7 +108,7 @@ inline double pow2_scale(double m) {
   if (be == 0 || be == 0x7ff || rb <= 0) {
     int ex = 0;
     std::frexp(m, &ex);
-    return std::ldexp(1.0, -ex);
+    return std::ldexp(1.0, std::min(-ex, 1023));  // subnormal m: 2^-ex would overflow; scale as far as it goes
   }
   const uint64_t r = uint64_t(rb) << 52;
   double out;
@@ -129,7 +131,7 @@ inline float pow2_scale(float m) {
   if (be == 0 || be == 0xff || rb <= 0) {
     int ex = 0;
     std::frexp(m, &ex);
-    return std::ldexp(1.0f, -ex);
+    return std::ldexp(1.0f, std::min(-ex, 127));
   }
   const uint32_t r = uint32_t(rb) << 23;
   float out;
