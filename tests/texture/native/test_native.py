@@ -96,13 +96,39 @@ def test_the_kernel_front_end_gives_the_torch_front_end(dtype, filter, max_aniso
             if filter == "trilinear":
                 assert axis is None and n is None and axis_ref is None and n_ref is None
                 continue
-            if n_ref is None:  # the torch path's one-tap-everywhere shortcut
-                n_ref, axis_ref = torch.ones_like(n), torch.zeros_like(axis)
-            assert torch.equal(n, n_ref)
-            many = n > 1  # the axis of a one-tap point is unused (0 in the kernel)
-            scale = axis_ref[many].abs().amax(-1, keepdim=True)
-            torch.testing.assert_close(axis[many] / scale, axis_ref[many] / scale, atol=tol, rtol=0)
             assert torch.isfinite(axis).all()
+            if n_ref is None:  # the torch path's one-tap-everywhere shortcut (no axis)
+                assert (n == 1).all()
+                continue
+            assert torch.equal(n, n_ref)
+            # Every point's axis, one-tap points' too: the cube map raises a count near an edge and spreads the
+            # taps along it. (Degenerate footprints: 0 in the kernel; one tap at uv whatever the axis.)
+            live = axis_ref.isfinite().all(-1) & (axis.abs().amax(-1) > 0)
+            scale = axis_ref[live].abs().amax(-1, keepdim=True)
+            torch.testing.assert_close(axis[live] / scale, axis_ref[live] / scale, atol=tol, rtol=0)
+            one = (n == 1) & axis_ref.isfinite().all(-1) & (axis_ref.abs().amax(-1) > 0)
+            assert (axis[one].abs().amax(-1) > 0).all()
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, f64])
+@pytest.mark.parametrize("filter", ["anisotropic", "auto"])
+def test_one_tap_points_get_their_major_axis(dtype, filter):
+    # The cube map raises a one-tap point's count near an edge and spreads the taps along this axis; the
+    # kernel gave 0 there, and a float64 auto cube read then changed by 2e-3 with a gradient on the directions.
+    W, H = 128, 64
+    dx = torch.tensor([[1.0 / W, 0.0], [1.05 / W, 0.0], [0.0, 0.5 / H], [0.7 / W, 0.7 / H], [8.0 / W, 0.0]],
+                      dtype=dtype)
+    dy = torch.tensor([[0.0, 1.0 / H], [0.0, 1.0 / H], [0.5 / W, 0.0], [-0.7 / W, 0.7 / H], [0.0, 1.0 / H]],
+                      dtype=dtype)
+    args = (filter, dx, dy, 0.0, H, W, 6, 16, 0.1)
+    _, axis, n = taps_mod.taps(*args)
+    with use_backend("reference"):
+        _, axis_ref, n_ref = taps_mod.taps(*args)
+    # Round footprints (0, 2, 3: the axis (1, 0), as lod.py's angle 0.5 atan2(0, 0)), longer ones (1, 4).
+    assert torch.equal(n, n_ref) and n.tolist()[:4] == [1, 2, 1, 1] and n[4] > 2
+    assert (axis.abs().amax(-1) > 0).all()
+    torch.testing.assert_close(axis, axis_ref, atol=1e-6 if dtype == torch.float32 else 1e-12, rtol=0)
 
 
 @needs_simd

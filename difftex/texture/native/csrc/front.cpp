@@ -17,7 +17,7 @@ namespace {
 // filters/auto.py give, in one pass instead of 15-50 elementwise torch
 // ops. kind 0: trilinear / nearest-mip (the longer footprint vector), 1:
 // anisotropic, 2: auto. Returns D [M] clamped to [0, levels - 1] and, for
-// kinds 1 and 2, the tap axis [M, 2] in uv (0 for one tap) and the tap
+// kinds 1 and 2, the tap axis [M, 2] in uv (the major axis, 0 for a degenerate footprint) and the tap
 // count [M] (int64). Degenerate footprints as lod.py: NaN or zero
 // derivatives are a point (level 0), infinite ones the whole texture (the
 // top level), one tap each; a NaN sum with the bias gives level 0.
@@ -203,14 +203,16 @@ DT_AVX2 void front_taps4(const float* px, int64_t xr, const float* py, int64_t y
   n = _mm256_blendv_pd(n, one, odd);
   const __m256d D = clamp_level4(add(log2_4(_mm256_div_pd(extent, n)), bias), f.top);
   _mm_storeu_ps(pD, _mm256_cvtpd_ps(_mm256_blendv_pd(D, D_odd, odd)));
-  // the major axis as a uv vector where n > 1 (front_one), else 0
+  // the major axis as a uv vector (front_one), 0 in the degenerate lanes
   const __m256d ac = _mm256_cmp_pd(a, c, _CMP_GE_OQ);
-  const __m256d ex = _mm256_blendv_pd(b, sub(lam, c), ac), ey = _mm256_blendv_pd(sub(lam, a), b, ac);
+  __m256d ex = _mm256_blendv_pd(b, sub(lam, c), ac);
+  const __m256d ey = _mm256_blendv_pd(sub(lam, a), b, ac);
+  const __m256d round = _mm256_cmp_pd(add(mul(ex, ex), mul(ey, ey)), zero, _CMP_EQ_OQ);
+  ex = _mm256_blendv_pd(ex, one, round);
   const __m256d signed_extent = _mm256_blendv_pd(extent, sub(zero, extent), _mm256_cmp_pd(ex, zero, _CMP_LT_OQ));
   const __m256d s = _mm256_div_pd(signed_extent, _mm256_sqrt_pd(add(mul(ex, ex), mul(ey, ey))));
-  const __m256d many = _mm256_cmp_pd(n, one, _CMP_GT_OQ);
-  const __m128 ax = _mm256_cvtpd_ps(_mm256_and_pd(many, mul(mul(ex, s), f.inv_w)));
-  const __m128 ay = _mm256_cvtpd_ps(_mm256_and_pd(many, mul(mul(ey, s), f.inv_h)));
+  const __m128 ax = _mm256_cvtpd_ps(_mm256_andnot_pd(odd, mul(mul(ex, s), f.inv_w)));
+  const __m128 ay = _mm256_cvtpd_ps(_mm256_andnot_pd(odd, mul(mul(ey, s), f.inv_h)));
   _mm_storeu_ps(pa, _mm_unpacklo_ps(ax, ay));
   _mm_storeu_ps(pa + 4, _mm_unpackhi_ps(ax, ay));
   _mm256_storeu_si256(reinterpret_cast<__m256i*>(pn), _mm256_cvtepi32_epi64(_mm256_cvttpd_epi32(n)));
@@ -296,14 +298,14 @@ DT_INLINE Taps front_one(double dx0, double dx1, double dy0, double dy1, double 
   }
   t.n = static_cast<int64_t>(n);
   t.D = clamp_level(std::log2(major * top / n) + bias, levels);  // major * top > 0 and finite
-  if (t.n > 1) {
-    // The major axis as a uv vector: the eigenvector of J J^T = [a b; b c]
-    // for lam, oriented as lod.py's angle 0.5 atan2(2b, a - c) (x >= 0).
-    double ex = a >= c ? lam - c : b, ey = a >= c ? b : lam - a;
-    const double s = (ex < 0 ? -major * top : major * top) / std::sqrt(ex * ex + ey * ey);
-    t.ax = ex * s * inv_w;
-    t.ay = ey * s * inv_h;
-  }
+  // The major axis as a uv vector, also for one tap (the cube map raises a point's count near an edge to its
+  // neighbouring face's and spreads the taps along its own axis): the eigenvector of J J^T = [a b; b c] for
+  // lam, oriented as lod.py's angle 0.5 atan2(2b, a - c) (x >= 0), which is 0 for a round footprint.
+  double ex = a >= c ? lam - c : b, ey = a >= c ? b : lam - a;
+  if (ex * ex + ey * ey == 0) ex = 1;
+  const double s = (ex < 0 ? -major * top : major * top) / std::sqrt(ex * ex + ey * ey);
+  t.ax = ex * s * inv_w;
+  t.ay = ey * s * inv_h;
   return t;
 }
 
