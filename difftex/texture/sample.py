@@ -17,7 +17,7 @@ from .lod import ellipse, footprint
 from .options import (BOX_FILTERS, DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_bias, check_filter,
                       check_number)
 from .pyramid.mipmap import Mipmap, level_count, mipmap
-from .pyramid.ripmap import Ripmap
+from .pyramid.ripmap import Ripmap, check_ripmap
 from .taps import levels_read, taps
 from .wrap import Wrap, parse_wrap
 
@@ -110,6 +110,7 @@ def sample(
     """
     pyramid = None
     if isinstance(texture, Ripmap):
+        texture = check_ripmap(texture)  # user-built levels, as a Mipmap's below
         if filter == "ripmap":
             pyramid = texture
         # The other mip filters read its diagonal, the mip chain (then validated as a Mipmap below).
@@ -234,7 +235,7 @@ def _per_texture(run, source_of, Bt: int, B: int, C: int, Ho: int, Wo: int) -> T
     """``run(source_of(i), points of view i)`` -> [C, points], per texture, as [B, C, Ho, Wo]."""
     P = Ho * Wo
     if Bt == 1:
-        # One texture for every view: all points in one flat list.
-        return run(source_of(None), slice(None)).view(C, B, Ho, Wo).transpose(0, 1)
+        # One texture for every view: all points in one flat list (copied into DESIGN.md's contiguous output).
+        return run(source_of(None), slice(None)).view(C, B, Ho, Wo).transpose(0, 1).contiguous()
     outs = [run(source_of(i), slice(i * P, (i + 1) * P)) for i in range(B)]
     return torch.stack(outs).view(B, C, Ho, Wo)

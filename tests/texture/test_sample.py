@@ -403,3 +403,15 @@ def test_float16_runs_every_filter(filter):
                          **{k: v.double() for k, v in kw.items()})
     assert out.dtype == torch.float16
     torch.testing.assert_close(out.double(), ref, atol=0.02, rtol=0)
+
+
+@pytest.mark.parametrize("filter", FILTERS)
+def test_one_texture_over_a_uv_batch_gives_a_contiguous_output(backend, filter):
+    # DESIGN.md: outputs are contiguous [B, C, H, W]; one texture shared by two views came back [C, B]-major.
+    g = torch.Generator().manual_seed(2)
+    tex, uv = torch.rand(1, 3, 8, 8, generator=g), torch.rand(2, 4, 5, 2, generator=g)
+    kw = {"uv_dx": torch.full_like(uv, 0.05), "uv_dy": torch.full_like(uv, 0.02)} if filter in MIP_FILTERS else {}
+    out = difftex.sample(tex, uv, filter=filter, **kw)
+    assert out.shape == (2, 3, 4, 5) and out.is_contiguous()
+    one = difftex.sample(tex, uv[1:], filter=filter, **{k: v[1:] for k, v in kw.items()})
+    torch.testing.assert_close(out[1], one[0])

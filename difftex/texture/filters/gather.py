@@ -167,7 +167,7 @@ def separable_forward(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_
         taps = _Taps(texture, uv[:, a:b], kind, wrap_u, wrap_v)
         parts.append(_contract(taps.read(flat, border), taps.wx, taps.wy))
     out = parts[0] if len(parts) == 1 else torch.cat(parts, -1)
-    return out.view(C, B, -1).transpose(0, 1) if B != Bt else out
+    return out.view(C, B, -1).transpose(0, 1).contiguous() if B != Bt else out  # DESIGN.md: contiguous
 
 
 def separable_backward(texture: Tensor, uv: Tensor, grad_out: Tensor, kind: str, wrap_u: str, wrap_v: str,

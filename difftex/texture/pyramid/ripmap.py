@@ -20,8 +20,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ..._checks import check_float, describe
-from .mipmap import Mipmap, _down_axis, level_count
+from ..._checks import check_float, check_same, describe
+from .mipmap import Mipmap, _down_axis, level_count, level_size
 
 
 def ripmap_counts(height: int, width: int) -> tuple[int, int]:
@@ -100,13 +100,43 @@ class Ripmap:
                 f"device={self.device})")
 
 
+def check_ripmap(rm: Ripmap) -> Ripmap:
+    """``rm`` itself after checking a (possibly user-built) grid: rectangular, at most a full ripmap's levels,
+    level ``(i, j)`` of shape ``[B, C, ceil(H / 2^j), ceil(W / 2^i)]``, every level of the base's dtype and
+    device. Raises ValueError / TypeError naming the level ``texture[i, j]``."""
+    grid = rm.grid
+    if not grid or not grid[0] or any(len(row) != len(grid[0]) for row in grid):
+        raise ValueError(f"texture: expected a non-empty rectangular grid of ripmap levels, got rows of "
+                         f"{[len(row) for row in grid]} levels")
+    base = check_float("texture[0, 0]", grid[0][0], 4, shape_doc="[B, C, H, W]")
+    B, C, H, W = base.shape
+    if min(B, C, H, W) < 1:
+        raise ValueError(f"texture[0, 0]: expected B, C, H, W >= 1, got {describe(base)}")
+    n_u, n_v = rm.counts
+    full = ripmap_counts(H, W)
+    if n_u > full[0] or n_v > full[1]:
+        raise ValueError(f"texture: {n_u} x {n_v} ripmap levels (u x v) given but a {H}x{W} base has only "
+                         f"{full[0]} x {full[1]}")
+    for j, row in enumerate(grid):
+        for i, lev in enumerate(row):
+            if i == j == 0:
+                continue
+            name = f"texture[{i}, {j}]"
+            check_float(name, lev, 4, shape_doc="[B, C, H_j, W_i]")
+            check_same(name, lev, "texture[0, 0]", base)
+            want = (B, C, level_size(H, 1, j)[0], level_size(1, W, i)[1])
+            if tuple(lev.shape) != want:
+                raise ValueError(f"{name}: expected shape {want} (ceil(H / 2^j) x ceil(W / 2^i)), got {describe(lev)}")
+    return rm
+
+
 def ripmap(texture: Tensor | Ripmap) -> Ripmap:
     """Build the ripmap of a texture: every combination of width and height halvings.
 
     Args:
         texture: [B, C, H, W] float tensor (any H, W >= 1, odd included: the
             mipmap's area-weighted box, no texel dropped), or a Ripmap
-            (returned as is).
+            (checked as :func:`check_ripmap` does, and returned as is).
 
     Returns:
         Ripmap with ``level_count(1, W) x level_count(H, 1)`` levels; level
@@ -117,7 +147,7 @@ def ripmap(texture: Tensor | Ripmap) -> Ripmap:
     texture, ValueError naming ``texture`` on a bad shape.
     """
     if isinstance(texture, Ripmap):
-        return texture
+        return check_ripmap(texture)
     check_float("texture", texture, 4, shape_doc="[B, C, H, W]")
     B, C, H, W = texture.shape
     if min(B, C, H, W) < 1:

@@ -86,3 +86,31 @@ def test_bad_input_names_the_argument():
     with pytest.raises(TypeError, match=r"texture: expected a float tensor \[B, C, H, W\], got list"):
         ripmap([torch.zeros(1, 1, 2, 2)])
     assert isinstance(ripmap(torch.zeros(1, 1, 2, 2)), Ripmap)
+
+
+def test_user_built_levels_are_checked():
+    # sample() read a user-built Ripmap unchecked: wrong sizes silently, mixed dtypes as internal errors.
+    tex = torch.rand(1, 2, 8, 8)
+    uv = torch.rand(1, 4, 4, 2)
+    d = dict(uv_dx=torch.full_like(uv, 0.3), uv_dy=torch.full_like(uv, 0.05))
+
+    def grid_with(i, j, lv):
+        g = [list(r) for r in ripmap(tex).grid]
+        g[j][i] = lv
+        return Ripmap(g)
+
+    bad = [(grid_with(1, 1, torch.rand(1, 2, 3, 3)), ValueError, r"texture\[1, 1\]: expected shape \(1, 2, 4, 4\)"),
+           (grid_with(1, 1, torch.rand(2, 2, 4, 4)), ValueError, r"texture\[1, 1\]: expected shape \(1, 2, 4, 4\)"),
+           (grid_with(2, 1, torch.rand(1, 2, 4, 2, dtype=torch.float64)), TypeError,
+            r"texture\[2, 1\]: expected dtype torch.float32"),
+           (Ripmap([[tex], [torch.rand(1, 2, 4, 8)], []]), ValueError, r"rectangular grid"),
+           (Ripmap([[tex] * 5]), ValueError, r"5 x 1 ripmap levels \(u x v\) given but a 8x8 base has only 4 x 4")]
+    for rm, err, msg in bad:
+        for f in ("ripmap", "trilinear", "bilinear"):
+            with pytest.raises(err, match=msg):
+                difftex.sample(rm, uv, filter=f, **d)
+        with pytest.raises(err, match=msg):
+            ripmap(rm)
+    good = Ripmap([list(r) for r in ripmap(tex).grid])
+    torch.testing.assert_close(difftex.sample(good, uv, filter="ripmap", **d),
+                               difftex.sample(tex, uv, filter="ripmap", **d))
