@@ -227,6 +227,21 @@ def test_nan_uv_stays_in_its_pixel(filt, wrap):
     assert torch.isfinite(tex.grad).all()
 
 
+@pytest.mark.parametrize("filt", ["bilinear", "bicubic", "trilinear"])
+def test_a_nan_uv_passes_no_gradient_back(filt):
+    # The reference backend gave its NaN pixel a NaN (or a stray finite) uv gradient, which reaches the
+    # mesh's shared vertex uv; the other backends give 0.
+    tex, uv = _rand_case(10, (5, 5), B=1, C=2, out_hw=(2, 2))
+    uv = uv.clone()
+    uv[0, 1, 0, 0] = float("nan")
+    uv[0, 1, 1, 1] = float("inf")
+    uv.requires_grad_()
+    kw = {"uv_dx": torch.full_like(uv, 0.1), "uv_dy": torch.full_like(uv, 0.1)} if filt == "trilinear" else {}
+    difftex.sample(tex, uv, filter=filt, wrap="repeat", **kw).sum().backward()
+    assert torch.equal(uv.grad[0, 1], torch.zeros(2, 2, dtype=uv.dtype))
+    assert (uv.grad[0, 0].abs() > 0).all()
+
+
 @pytest.mark.parametrize("filt", ["nearest", "bilinear", "bicubic", "trilinear", "nearest-mip", "anisotropic",
                                   "ewa", "auto"])
 def test_empty_image(filt):

@@ -209,7 +209,10 @@ def separable_backward(texture: Tensor, uv: Tensor, grad_out: Tensor, kind: str,
             gv = (g.view(Bt, C, 1, 1, -1) * taps.read(flat, border)).sum(1)  # [Bt, K, K, m]
             gx = _contract(gv.unsqueeze(1), taps.dwx, taps.wy)[:, 0] * W
             gy = _contract(gv.unsqueeze(1), taps.wx, taps.dwy)[:, 0] * H
-            grad_uv.append(torch.stack((gx, gy), -1))
+            # A NaN / inf uv passes no gradient back either (as the native and grid_sample backends): its own
+            # NaN would reach whatever the uv came from (a mesh's shared vertex uv).
+            ok = torch.isfinite(uv[:, a:b]).all(-1, keepdim=True)
+            grad_uv.append(torch.where(ok, torch.stack((gx, gy), -1), 0.0))
     grad_tex = grad_flat.view(Bt, C, H, W) if need_tex else None
     if not need_uv:
         return grad_tex, None
