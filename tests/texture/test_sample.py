@@ -358,6 +358,21 @@ def _assert_impls_agree(filt, tex, uv):
                 torch.testing.assert_close(a, b, atol=1e-9, rtol=0, msg=f"{filt} {wu}/{wv}")
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_nearest_ties_pick_the_same_texel_on_every_backend(dtype):
+    # u = k / n puts x = u n - 0.5 on a tie; the grid_sample path folded u before rounding, which moves a tie
+    # across a mirror (or an odd number of texels) and picked the other texel (mirror at u = -0.25 with n = 4).
+    for n in (3, 4, 5):
+        tex = torch.arange(float(n), dtype=dtype).view(1, 1, 1, n)
+        uv = torch.tensor([[[[k / n, 0.5] for k in range(-3 * n, 4 * n)]]], dtype=dtype)
+        for wrap in difftex.WRAP_MODES:
+            got = []
+            for impl in ("native", "grid_sample", "reference"):
+                with use_backend(impl):
+                    got.append(difftex.sample(tex, uv, filter="nearest", wrap=(wrap, "clamp")))
+            assert torch.equal(got[0], got[2]) and torch.equal(got[1], got[2]), (n, wrap)
+
+
 @pytest.mark.parametrize("filt", ["nearest", "bilinear", "bicubic"])
 def test_fast_path_equals_reference_for_every_mode_pair(filt):
     tex, uv = _rand_case(12, (5, 4), lo=-4.0, hi=5.0)

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..wrap import fold, fold_slope, pad_index
+from ..wrap import fold, fold_slope, pad_index, wrap_index
 from .gather import reduce_coordinate, separable_backward, separable_forward
 
 _GS_MODE = {"nearest": "nearest", "linear": "bilinear", "cubic": "bicubic"}
@@ -109,6 +109,13 @@ def _fold(u: Tensor, mode: str) -> Tensor:
     stop every tap is off the texture, so the read is the same.
     """
     return fold(u, mode) if mode in ("repeat", "mirror") else reduce_coordinate(u, mode)
+
+
+def _nearest_centre(u: Tensor, n: int, mode: str) -> Tensor:
+    """The centre of the texel that a nearest read of ``u`` picks on an axis of ``n`` texels, by the reference's
+    rule (``reduce_coordinate``, ``x = u n - 0.5`` rounded half to even, the integer wrap of ``mode``)."""
+    i, _ = wrap_index(torch.round(reduce_coordinate(u, mode) * n - 0.5), n, mode)
+    return (i.to(u.dtype) + 0.5) / n
 
 
 _GS_ENUM = {"linear": 0, "nearest": 1, "cubic": 2}  # aten's GridSamplerInterpolation
@@ -204,6 +211,11 @@ class FastSample:
             # coordinates, which are not exact, and could pick either side.
             size = uv.new_tensor([W, H])
             folded = (torch.round(folded * size - 0.5) + 0.5) / size
+            if {wrap_u, wrap_v} & {"repeat", "mirror"}:
+                # There the rounding must come before the wrap, as the reference does it: the fold moves a tie
+                # across a mirror (or an odd number of texels) to the other side of it.
+                folded = torch.stack([_nearest_centre(uv[..., a], n, m) if m in ("repeat", "mirror") else folded[..., a]
+                                      for a, (n, m) in enumerate(((W, wrap_u), (H, wrap_v)))], -1)
         self.uv, self.folded = uv, folded
         self.edge = None
         if shared and (wrap_u, wrap_v) != ("clamp", "clamp") and H * W > B * M:
