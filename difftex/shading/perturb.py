@@ -21,7 +21,7 @@ from ..texture.options import check_filter
 from ..texture.pyramid.mipmap import Mipmap
 from ..texture.sample import sample
 from ..texture.wrap import Wrap
-from .common import operand, unit
+from .common import broadcast, operand, unit
 
 SLOPE_METHODS = ("analytic", "difference")
 GREEN = ("down", "up")
@@ -71,7 +71,7 @@ def height_slope(
             and linear in v (likewise dh/dv); "bicubic"
             is continuous but, with grid_sample's Keys a = -0.75, does
             not reproduce a linear ramp: its slope on a ramp of slope s
-            swings by about 16% around s within each texel; the mip
+            runs from 0.75 s to 1.49 s within each texel; the mip
             filters differentiate each level's
             bilinear taps at the level their footprint chooses);
             "difference": the seed notes' forward difference
@@ -170,6 +170,9 @@ def bump(
     _check_frames(frames, uv, base)
     s = operand("scale", scale, uv, "broadcasting to [B, Ho, Wo]", "uv")
     if s.dim() > 0:
+        if s.dim() > 3:
+            raise ValueError(f"scale: expected a number or a tensor broadcasting to [B, Ho, Wo], got {describe(s)}")
+        broadcast({"scale": s.shape, "uv's [B, Ho, Wo]": uv.shape[:3]})
         s = s.unsqueeze(-1)
     slope = height_slope(height, uv, method=method, filter=filter, wrap=wrap, border_value=border_value,
                          uv_dx=uv_dx, uv_dy=uv_dy, lod_bias=lod_bias, max_aniso=max_aniso)

@@ -132,8 +132,9 @@ def bake(mesh: Mesh, fn: Callable[[Tensor, Tensor], Tensor], size: int | Sequenc
     frags = rasterize(clip, mesh.uv_faces, (H, W))
     mask = frags.tri_id[0] >= 0
     points = interpolate(pos, mesh.uv_faces, frags, attr_faces=mesh.faces)[0][mask]
-    if mesh.normals is not None and mesh.normal_faces is not None:
-        normals = interpolate(mesh.normals, mesh.uv_faces, frags, attr_faces=mesh.normal_faces)[0][mask]
+    if mesh.normals is not None:  # indexed by normal_faces, or like the positions (tangent_frames' rule)
+        nf = mesh.normal_faces if mesh.normal_faces is not None else mesh.faces
+        normals = interpolate(mesh.normals, mesh.uv_faces, frags, attr_faces=nf)[0][mask]
     else:
         normals = interpolate(vertex_normals(pos, mesh.faces), mesh.uv_faces, frags, attr_faces=mesh.faces)[0][mask]
     normals = unit(normals)

@@ -70,6 +70,9 @@ def _perlin(p: Tensor, perm: Tensor, grads: Tensor) -> Tensor:
     """Noise at p [..., 3] (already checked) -> [...]; differentiable in p through the ramps and the fades."""
     # Past 2**52 the fraction is gone anyway; the period lets us drop whole periods exactly.
     p = p - _PERIOD * torch.floor(p.detach() / _PERIOD)
+    # Just below a multiple of the period the difference rounds up to the period itself (float32: p in about
+    # (-7.6e-6, 0)); there the noise is the period's start, not cell 255 at t = 1 clamped to 255.
+    p = torch.where(p.detach() >= _PERIOD, p - _PERIOD, p)
     cell = torch.floor(p.detach())
     t = p - cell  # in [0, 1); its gradient is 1 (the floor is a constant)
     i = torch.nan_to_num(cell, nan=0.0, posinf=0.0, neginf=0.0).long().clamp_(0, _PERIOD - 1)
@@ -191,14 +194,15 @@ def wood(points: Tensor, *, frequency: float = 6.0, grain: float = 0.15, noise_s
          light: Sequence[float] = (0.80, 0.58, 0.34), dark: Sequence[float] = (0.45, 0.26, 0.12)) -> Tensor:
     """A wood solid texture: rings around the z axis, wobbled by fBm.
 
-    The ring phase is ``frequency * r + grain * fbm(noise_scale * p)`` with
-    ``r`` the distance of ``p`` from the z axis; the colour blends ``light``
+    The ring phase is ``frequency * (r + grain * fbm(noise_scale * p))``
+    with ``r`` the distance of ``p`` from the z axis; the colour blends ``light``
     and ``dark`` by ``(0.5 + 0.5 cos(2 pi phase))^3`` (thin dark rings).
 
     Args:
         points: [..., 3] object-space points (units of the mesh).
         frequency: rings per unit of radius.
-        grain: ring wobble in rings; noise_scale: noise cells per unit.
+        grain: ring wobble in units of radius (``grain * frequency``
+            rings); noise_scale: noise cells per unit.
         seed: noise seed. light, dark: RGB colours in [0, 1].
 
     Returns:

@@ -164,6 +164,10 @@ def test_bad_input():
         bump(h, uv, frames, filter="trilinear")
     with pytest.raises(TypeError, match=r"scale: expected dtype torch.float64 like uv"):
         bump(h, uv, frames, torch.tensor(1.0))
+    with pytest.raises(ValueError, match=r"shapes do not broadcast \(scale \(3,\), uv's \[B, Ho, Wo\] \(1, 5, 5\)\)"):
+        bump(h, uv, frames, torch.ones(3, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"scale: expected a number or a tensor broadcasting to \[B, Ho, Wo\]"):
+        bump(h, uv, frames, torch.ones(1, 5, 5, 1, dtype=torch.float64))
     with pytest.raises(ValueError, match=r"texture: expected 3 channels"):
         normal_map(h, uv, frames)
     with pytest.raises(ValueError, match=r"green: expected one of \('down', 'up'\)"):

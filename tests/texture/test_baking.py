@@ -240,3 +240,15 @@ def test_rectangular_size_and_float32():
     uv = _texel_centres(8, 12, torch.float32)
     inside = ((uv > 0.25) & (uv < 0.75)).all(-1)
     assert torch.allclose(tex.permute(1, 2, 0)[inside], _affine(uv)[inside], atol=1e-6)
+
+
+def test_normals_without_normal_faces_are_the_meshs():
+    # normals indexed like the positions (normal_faces None, as tangent_frames takes them) were ignored for the
+    # area-weighted vertex normals of the positions.
+    pos = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0.5], [0, 1, 0.5]])
+    uv = torch.tensor([[0.0, 1], [1, 1], [1, 0], [0, 0]])
+    f = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    normals = torch.tensor([[0.0, 0, 1]]).expand(4, 3).clone()
+    for nf in (None, f):
+        baked = difftex.bake(Mesh(pos, f, uv, f, normals, nf), lambda p, n: n, 4)
+        torch.testing.assert_close(baked[:, 2, 2], torch.tensor([0.0, 0, 1]), atol=1e-6, rtol=0)

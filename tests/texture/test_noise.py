@@ -123,3 +123,24 @@ def test_non_finite_points_stay_local():
     p = torch.tensor([[0.5, 0.5, 0.5], [float("nan"), 0.0, 0.0], [float("inf"), 0.0, 0.0]])
     v = perlin(p)
     assert torch.isfinite(v[0]) and not torch.isfinite(v[1:]).any()
+
+
+def test_perlin_just_below_a_period_reads_the_period_start():
+    # p - 256 floor(p / 256) rounds to 256 itself just below a multiple of 256 (float32: p in about
+    # (-7.6e-6, 0)); the cell index was then clamped to 255, the noise of the plane x = 255.
+    xs = [-1e-4, -1e-6, -1e-7, 0.0, 1e-7, 256 - 1e-5, 512 - 2e-5]
+    pts = torch.tensor([[x, 0.3, 0.3] for x in xs], dtype=torch.float64)
+    ref = perlin(pts)
+    got = perlin(pts.float())
+    torch.testing.assert_close(got.double(), ref, atol=2e-5, rtol=0)
+    assert (ref - ref[3]).abs().max() < 2e-5  # C2 and periodic: all close to the value at 0
+
+
+def test_wood_is_its_documented_formula():
+    p = torch.randn(50, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    f, g, ns = 4.0, 0.3, 1.5
+    r = p[:, :2].norm(dim=-1)
+    s = (0.5 + 0.5 * torch.cos(2 * math.pi * f * (r + g * fbm(ns * p, octaves=3)))) ** 3
+    light, dark = torch.tensor([0.80, 0.58, 0.34], dtype=p.dtype), torch.tensor([0.45, 0.26, 0.12], dtype=p.dtype)
+    got = wood(p, frequency=f, grain=g, noise_scale=ns)
+    torch.testing.assert_close(got, light + (dark - light) * s[:, None], atol=1e-12, rtol=0)
