@@ -49,7 +49,12 @@ def direction_to_equirect_uv(dirs: torch.Tensor, *,
     # A power of two per direction brings its largest component into [0.5, 1) exactly (the angles and their
     # derivatives do not change): sphere_uv's axis test is an absolute length, which a short direction is under.
     m = dirs.detach().abs().amax(-1, keepdim=True)
-    dirs, dds = pow2_normalise(dirs, m), [pow2_normalise(d, m) for d in dds]
+    return equirect_uv_of_unit(pow2_normalise(dirs, m), [pow2_normalise(d, m) for d in dds])
+
+
+def equirect_uv_of_unit(dirs: torch.Tensor, dds: list[torch.Tensor]) -> UVResult:
+    """:func:`direction_to_equirect_uv` of checked directions of about unit length (``equirect`` normalises
+    its own), without the rescaling: uv, or (uv, uv_dx, uv_dy) with the two derivatives ``dds``."""
     uv, duv = sphere_uv(-dirs[..., 2], dirs[..., 0], dirs[..., 1],
                          [-d[..., 2] for d in dds], [d[..., 0] for d in dds], [d[..., 1] for d in dds])
     return result(uv, duv)

@@ -19,7 +19,7 @@ from .._checks import broadcast_batch, check_float, check_same, describe
 from ..texture import Mipmap, sample
 from ..texture.options import MIP_FILTERS, check_filter
 from ..mapping.common import EPS
-from .directions import check_dirs_derivs, cube_to_direction, direction_to_equirect_uv
+from .directions import check_dirs_derivs, cube_to_direction, equirect_uv_of_unit
 
 
 def _unit(dirs: Tensor, dds: list[Tensor]) -> tuple[Tensor, list[Tensor], Tensor]:
@@ -166,10 +166,10 @@ def equirect(
         dds = [d.expand(Bd, -1, -1, -1) for d in dds]
     n, dn, zero = _unit(dirs, dds)
     if dn:
-        uv, uv_dx, uv_dy = direction_to_equirect_uv(n, dirs_dx=dn[0], dirs_dy=dn[1])
+        uv, uv_dx, uv_dy = equirect_uv_of_unit(n, dn)
         uv_dx, uv_dy = _pole_derivatives(n, dn, _at_most_one_turn([uv_dx, uv_dy]))
     else:
-        uv, uv_dx, uv_dy = direction_to_equirect_uv(n), None, None
+        uv, uv_dx, uv_dy = equirect_uv_of_unit(n, []), None, None
     out = sample(env, uv, filter=filter, wrap=("repeat", "clamp"), uv_dx=uv_dx, uv_dy=uv_dy,
                  lod_bias=lod_bias, max_aniso=max_aniso)
     if bool(zero.any()):
