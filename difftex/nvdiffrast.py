@@ -57,6 +57,7 @@ from ._checks import check_float, check_same, describe
 from .envmap.cube import CubeMipmap, cubemap
 from .geometry.antialias import antialias as _antialias
 from .geometry.raster import Fragments, fragments_of, packed_fragments, visible_layers
+from .texture.lod import level
 from .texture.options import MAX_ANISO, check_number
 from .texture.pyramid.mipmap import Mipmap, mipmap
 from .texture.sample import sample
@@ -514,6 +515,12 @@ def _custom_stack(tex: Tensor, mip: object, cube: bool, max_mip_level: Optional[
             if tuple(lv.shape[1:]) != want:
                 raise ValueError(f"mip: level {k} must be [B, 6, {want[2]}, {want[3]}, {C}], got {describe(lv)}")
         return CubeMipmap([base] + list(rest))
+    B, C, H, W = base.shape
+    for k, lv in enumerate(rest, 1):  # named and shaped as given (NHWC), before mipmap() checks them as NCHW
+        want = (B, C, -(-H // 2 ** k), -(-W // 2 ** k))
+        if tuple(lv.shape) != want:
+            raise ValueError(f"mip[{k - 1}]: level {k} must be [{B}, {want[2]}, {want[3]}, {C}] (the layout of tex), "
+                             f"got shape {tuple(lv.permute(0, 2, 3, 1).shape)}")
     return mipmap([base] + list(rest))
 
 
@@ -526,18 +533,33 @@ def _unit_footprint(uv: Tensor, shape_hw: tuple[int, int]) -> tuple[Tensor, Tens
 
 
 def _cube_at_level(pyramid: CubeMipmap, dirs: Tensor, bias: Tensor, nearest: bool) -> Tensor:
-    """A cube map read at the level ``clamp(bias, 0, top)`` itself: bilinear per level, tent weights (or the
-    nearest level, halves rounded up as ``mip_blend`` rounds them for the 2D textures).
+    """A cube map read at the level ``D = clamp(bias, 0, top)`` itself: bilinear per level, blended between
+    the two levels around D (or the nearest level, halves rounded up as ``mip_blend`` rounds them for the 2D
+    textures).
 
     Synthetic derivatives cannot fix the level on a cube: near an edge the
-    cube's level blends with the neighbouring face's footprint.
+    cube's level blends with the neighbouring face's footprint. The gradient
+    in the bias is DESIGN.md's derivative from below, as the 2D read gives it:
+    ``v_k - v_(k-1)`` at an integer level ``k > 0``, 0 at level 0.
     """
     top = len(pyramid.levels) - 1
-    D = bias.clamp(0, top)
+    D = level(torch.zeros_like(bias), bias, top + 1)
+    if nearest:
+        k0, t = torch.floor(D.detach() + 0.5), None
+    else:
+        # The lower of the two levels blended: ceil(D) - 1, so that an integer level k > 0 is the pair
+        # (k - 1, k) at weight 1 on k, whose derivative is the one from below.
+        k0 = (torch.ceil(D.detach()) - 1).clamp_(min=0)
+        t = D - k0
     out = None
     for k, lv in enumerate(pyramid.levels):
-        w = (torch.floor(D + 0.5) == k).to(D.dtype) if nearest else (1 - (D - k).abs()).clamp(min=0)
-        if not bool((w > 0).any()):
+        if t is None:
+            w = (k0 == k).to(D.dtype)
+        else:
+            w = torch.where(k0 == k, 1 - t, torch.where(k0 + 1 == k, t, torch.zeros_like(t)))
+        # A level is read where it has weight, or (with a gradient to the bias) where it is one of the pair.
+        read = ((k0 == k) | (k0 + 1 == k)) if D.requires_grad and t is not None else w != 0
+        if not bool(read.any()):
             continue
         term = cubemap(lv, dirs, filter="bilinear") * w.unsqueeze(1)
         out = term if out is None else out + term

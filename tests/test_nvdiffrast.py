@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
@@ -474,3 +475,27 @@ def test_cube_mip_nearest_rounds_half_levels_as_2d():
                          filter_mode="linear-mipmap-nearest", boundary_mode="cube")
         ref = dr.texture(levels[k].permute(0, 1, 3, 4, 2).contiguous(), d, filter_mode="linear", boundary_mode="cube")
         torch.testing.assert_close(got, ref, rtol=0, atol=1e-12)
+
+
+def test_cube_bias_gradient_is_the_derivative_from_below():
+    # The tent weights were differentiated at their kinks: 0 at an integer level unless another pixel read the
+    # neighbouring levels (then about v_(k+1) - v_(k-1)), and v_1 at level 0. DESIGN.md: v_k - v_(k-1), 0 at 0.
+    g = torch.Generator().manual_seed(0)
+    tex = torch.rand(1, 6, 8, 8, 3, generator=g, dtype=torch.float64)
+    d = torch.nn.functional.normalize(torch.randn(1, 1, 2, 3, generator=g, dtype=torch.float64), dim=-1)
+    f = lambda b: dr.texture(tex, d, mip_level_bias=b, filter_mode="linear-mipmap-linear", boundary_mode="cube")
+    for bias in ([1.0, 1.0], [1.0, 2.5], [0.0, 1.5], [1.5, 3.0]):
+        b = torch.tensor(bias, dtype=torch.float64).view(1, 1, 2).requires_grad_()
+        f(b)[..., 0].sum().backward()
+        below = (f(b.detach()) - f(b.detach() - 1e-6))[..., 0].flatten() / 1e-6
+        torch.testing.assert_close(b.grad.flatten(), below, atol=1e-6, rtol=0, msg=str(bias))
+        assert bias[0] > 0 or b.grad.flatten()[0] == 0
+
+
+def test_a_custom_mip_level_of_the_wrong_shape_is_named_in_its_layout():
+    tex = torch.rand(1, 8, 8, 3)
+    uv = torch.rand(1, 2, 2, 2)
+    for bad in (torch.rand(1, 3, 4, 3), torch.rand(1, 4, 4, 2)):
+        with pytest.raises(ValueError, match=r"mip\[0\]: level 1 must be \[1, 4, 4, 3\] \(the layout of tex\), got "
+                                             + re.escape(f"shape {tuple(bad.shape)}")):
+            dr.texture(tex, uv, mip=[bad], mip_level_bias=torch.ones(1, 2, 2), filter_mode="linear-mipmap-linear")

@@ -2,15 +2,16 @@
 
 The convention is the one NeRF-style tools share (Blender synthetic scenes,
 instant-ngp, nerfstudio): a JSON file with the intrinsics, either
-``camera_angle_x`` (full horizontal field of view, radians; square pixels,
-principal point at the centre) or ``fl_x, fl_y, cx, cy`` in pixels, the
+``camera_angle_x`` and / or ``camera_angle_y`` (full fields of view, radians;
+one alone means square pixels; principal point at the centre) or
+``fl_x, fl_y, cx, cy`` in pixels, the
 image size ``w, h``, and ``frames``, each with a ``file_path`` (relative to
 the JSON's folder; Blender's scenes leave out the ``.png``) and a 4x4
 camera-to-world ``transform_matrix``. Camera axes are OpenGL's: the camera
 looks down its -z axis with +y up and +x to the right, which is difftex's
 view space (:mod:`difftex.geometry.camera`), so world -> view is the
 matrix's inverse. nerfstudio's per-frame ``fl_x, fl_y, cx, cy, w, h``
-override the shared ones. Images are PNG / JPEG; an alpha channel is the
+(and per-frame angles) override the shared ones. Images are PNG / JPEG; an alpha channel is the
 object mask.
 
 Pixels (DESIGN.md section 2): the image coordinate ``(x, y)`` (x right, y
@@ -225,13 +226,20 @@ def _intrinsics(raw: dict, base: dict, where: str) -> dict:
         if k in raw and _number(raw, k, where) != 0:
             raise ValueError(f"{where}: lens distortion {k}={raw[k]!r} is not supported (difftex renders a pinhole "
                              "camera); undistort the images first (e.g. with COLMAP's image_undistorter)")
-    if "fl_x" not in raw and "camera_angle_x" in raw:
-        ax = _number(raw, "camera_angle_x", where)
-        if not 0 < ax < math.pi:
-            raise ValueError(f"{where}: camera_angle_x must lie in (0, pi) radians, got {ax!r}")
-        out["angle_x"] = ax
-    if "fl_y" not in raw and "camera_angle_y" in raw:
-        out["angle_y"] = _number(raw, "camera_angle_y", where)
+    # An angle given here (without its focal length) overrides what ``base`` gave for that axis; one alone,
+    # with nothing here for the other axis, also drops the other axis' inherited value (square pixels).
+    given = [axis for axis in ("x", "y") if f"fl_{axis}" not in raw and f"camera_angle_{axis}" in raw]
+    for axis in given:
+        a = _number(raw, f"camera_angle_{axis}", where)
+        if not 0 < a < math.pi:
+            raise ValueError(f"{where}: camera_angle_{axis} must lie in (0, pi) radians, got {a!r}")
+        out[f"angle_{axis}"] = a
+        out.pop(f"fl_{axis}", None)
+    if len(given) == 1:
+        other = "y" if given[0] == "x" else "x"
+        if f"fl_{other}" not in raw:
+            out.pop(f"fl_{other}", None)
+            out.pop(f"angle_{other}", None)
     return out
 
 
@@ -243,14 +251,16 @@ def _resolve(intr: dict, size: Optional[tuple[int, int]], where: str) -> tuple[f
     if w is None or h is None:
         w, h = size
     w, h = int(w), int(h)
-    fl_x = intr.get("fl_x")
-    if fl_x is None:
-        if "angle_x" not in intr:
-            raise ValueError(f"{where}: expected fl_x (with fl_y, cx, cy) or camera_angle_x for the focal length")
+    fl_x, fl_y = intr.get("fl_x"), intr.get("fl_y")
+    if fl_x is None and "angle_x" in intr:
         fl_x = 0.5 * w / math.tan(0.5 * intr["angle_x"])
-    fl_y = intr.get("fl_y")
-    if fl_y is None:
-        fl_y = 0.5 * h / math.tan(0.5 * intr["angle_y"]) if "angle_y" in intr else fl_x
+    if fl_y is None and "angle_y" in intr:
+        fl_y = 0.5 * h / math.tan(0.5 * intr["angle_y"])
+    if fl_x is None and fl_y is None:
+        raise ValueError(f"{where}: expected fl_x (with fl_y, cx, cy), camera_angle_x or camera_angle_y for the "
+                         "focal length")
+    # One focal length alone: square pixels.
+    fl_x, fl_y = (fl_y if fl_x is None else fl_x), (fl_x if fl_y is None else fl_y)
     cx = intr.get("cx", w / 2)
     cy = intr.get("cy", h / 2)
     if not (fl_x > 0 and fl_y > 0 and w > 0 and h > 0):

@@ -114,6 +114,20 @@ def test_blender_style_angle_and_path_without_extension(tmp_path):
     assert torch.equal(item["mask"], torch.ones(1, 12, 16))  # no alpha: every pixel counts
 
 
+def test_angles_alone_and_per_frame_angles_over_shared_focal_lengths(tmp_path):
+    # camera_angle_y alone raised (it now gives both focal lengths); a frame's own camera_angle_x lost to
+    # the shared fl_x / fl_y (it now sets the frame's camera, square pixels).
+    difftex.save_image(tmp_path / "a.png", torch.rand(3, 30, 40))
+    frame = {"file_path": "a.png", "transform_matrix": torch.eye(4).tolist()}
+    for top, own, want in (({"camera_angle_y": 0.9}, {}, 15 / math.tan(0.45)),
+                           ({"fl_x": 50.0, "fl_y": 50.0}, {"camera_angle_x": 0.8}, 20 / math.tan(0.4)),
+                           ({"camera_angle_x": 0.8}, {"fl_x": 60.0}, 60.0)):
+        (tmp_path / "transforms.json").write_text(json.dumps({**top, "frames": [{**frame, **own}]}))
+        f = load_capture(tmp_path).frames[0]
+        assert (f.fl_x, f.fl_y) == (pytest.approx(want), pytest.approx(want)), (top, own)
+        assert (f.cx, f.cy, f.width, f.height) == (20, 15, 40, 30)
+
+
 def _bad_capture(tmp_path, **change):
     """Three good 8x8 frames, then ``change`` applied to the JSON of frame 1."""
     tmp_path.mkdir(parents=True, exist_ok=True)
