@@ -59,7 +59,7 @@ from .geometry.antialias import antialias as _antialias
 from .geometry.raster import Fragments, fragments_of, packed_fragments, visible_layers
 from .texture.lod import level
 from .texture.options import MAX_ANISO, check_number
-from .texture.pyramid.mipmap import Mipmap, mipmap
+from .texture.pyramid.mipmap import Mipmap, level_size, mipmap
 from .texture.sample import sample
 
 __all__ = [
@@ -511,13 +511,13 @@ def _custom_stack(tex: Tensor, mip: object, cube: bool, max_mip_level: Optional[
     if cube:
         B, _, C, S, _ = base.shape
         for k, lv in enumerate(rest, 1):
-            want = (6, C, -(-S // 2 ** k), -(-S // 2 ** k))
+            want = (6, C) + level_size(S, S, k)
             if tuple(lv.shape[1:]) != want:
                 raise ValueError(f"mip: level {k} must be [B, 6, {want[2]}, {want[3]}, {C}], got {describe(lv)}")
         return CubeMipmap([base] + list(rest))
     B, C, H, W = base.shape
     for k, lv in enumerate(rest, 1):  # named and shaped as given (NHWC), before mipmap() checks them as NCHW
-        want = (B, C, -(-H // 2 ** k), -(-W // 2 ** k))
+        want = (B, C) + level_size(H, W, k)
         if tuple(lv.shape) != want:
             raise ValueError(f"mip[{k - 1}]: level {k} must be [{B}, {want[2]}, {want[3]}, {C}] (the layout of tex), "
                              f"got shape {tuple(lv.permute(0, 2, 3, 1).shape)}")

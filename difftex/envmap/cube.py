@@ -637,7 +637,7 @@ def _bilinear(cube: Union[Tensor, CubeMipmap], dirs: Tensor, B: int) -> Tensor:
     P = n + 2
     atlas = cube.atlas(0, 1) if isinstance(cube, CubeMipmap) else _atlas(cube, 1)
     face, sc, tc, ma, _, _, _ = _face_coords(dirs, [])
-    inv = 1.0 / torch.where(ma >= dir_floor(ma.dtype), ma, torch.inf)  # the zero vector: the face centre
+    inv = 1.0 / torch.where(ma >= dir_floor(ma.dtype), ma, torch.inf)  # below the floor: the face centre
     grid = torch.stack([sc * inv * (n / P), tc * inv * (n / (6 * P)) + (face.to(sc.dtype) / 3 - 5 / 6)], -1)
     grid = grid.expand(B, *grid.shape[1:])
     if atlas.shape[0] != B:

@@ -111,7 +111,7 @@ def direction_to_cube(dirs: torch.Tensor, *,
     dirs = check_tensor(dirs, "dirs", 3)
     dds = check_derivs(dirs_dx, dirs_dy, "dirs", 3, dirs)
     face, sc, tc, ma, dsc, dtc, dma = _face_coords(dirs, dds)
-    # Below the floor (the zero vector) m_a = inf: the face centre, zero derivatives, no gradient.
+    # Below the floor (the zero vector) m_a = inf, as the kernel: the face centre, zero derivatives, no gradient.
     ma = torch.where(ma >= dir_floor(ma.dtype), ma, torch.inf)
     s, t = sc / ma, tc / ma
     uv = torch.stack([0.5 * (s + 1.0), 0.5 * (t + 1.0)], dim=-1)

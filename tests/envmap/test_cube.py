@@ -324,6 +324,24 @@ def test_short_directions_read_as_unit_ones(backend, dtype, scale, filter):
     assert short.grad.isfinite().all()
 
 
+@pytest.mark.parametrize("dtype, scale", [(torch.float32, 1e-31), (torch.float32, 1e-40), (F64, 1e-200)])
+def test_directions_below_the_floor_read_the_face_centre_on_every_backend(backend, dtype, scale):
+    # Below dir_floor (1e-30 float32, 1e-150 float64) a direction is the zero vector's face centre, with no
+    # gradient; the kernel clamped m_a instead and read other texels than the torch backends.
+    g = torch.Generator().manual_seed(1)
+    cube = torch.rand(1, 6, 3, 8, 8, generator=g, dtype=dtype)
+    d = (torch.randn(1, 2, 3, 3, generator=g, dtype=dtype) * scale).requires_grad_()
+    for f in ("bilinear", "trilinear"):
+        kw = dict(dirs_dx=torch.full_like(d, 0.05 * scale), dirs_dy=torch.full_like(d, 0.02 * scale))
+        got = cubemap(cube, d, filter=f, **kw)
+        with use_backend("reference"):
+            ref = cubemap(cube, d, filter=f, **kw)
+        torch.testing.assert_close(got, ref, rtol=0, atol=1e-5 if dtype == torch.float32 else 1e-12)
+        got.sum().backward()
+        assert torch.equal(d.grad, torch.zeros_like(d))
+        d.grad = None
+
+
 @pytest.mark.parametrize("filter", ["anisotropic", "auto"])
 def test_values_do_not_depend_on_the_directions_needing_a_gradient(backend, filter):
     # The kernel's no-gradient front end gave one-tap points no axis; near an edge the count rises to the

@@ -181,6 +181,12 @@ def separable_backward(texture: Tensor, uv: Tensor, grad_out: Tensor, kind: str,
     Bt, C, H, W = texture.shape
     B = uv.shape[0]
     uv = _one_row(texture, uv)
+    # A point whose uv is NaN / inf passes nothing back: no texture gradient (its NaN weights must not reach
+    # the texels it happens to index) and no uv gradient (as the native and grid_sample backends; its NaN
+    # would reach whatever the uv came from). The uv is replaced before use, so that the double backward
+    # sends no NaN either.
+    finite = torch.isfinite(uv).all(-1, keepdim=True)
+    uv = torch.where(finite, uv, 0.0)
     if B != Bt:
         grad_out = grad_out.transpose(0, 1).reshape(1, C, -1)
     flat = texture.reshape(Bt, C, H * W)
@@ -196,9 +202,7 @@ def separable_backward(texture: Tensor, uv: Tensor, grad_out: Tensor, kind: str,
         g = grad_out[:, :, a:b]
         if need_tex:
             w = taps.wy.unsqueeze(2) * taps.wx.unsqueeze(1)  # [Bt, K, K, m]
-            # A point whose uv is NaN / inf has NaN weights; it must not spread
-            # NaN into the texels it happens to index, so it gives them nothing.
-            keep = torch.isfinite(uv[:, a:b]).all(-1).view(Bt, 1, 1, -1)
+            keep = finite[:, a:b].view(Bt, 1, 1, -1)
             if taps.valid is not None:
                 keep = keep & taps.valid
             w = torch.where(keep, w, 0.0)
@@ -209,10 +213,7 @@ def separable_backward(texture: Tensor, uv: Tensor, grad_out: Tensor, kind: str,
             gv = (g.view(Bt, C, 1, 1, -1) * taps.read(flat, border)).sum(1)  # [Bt, K, K, m]
             gx = _contract(gv.unsqueeze(1), taps.dwx, taps.wy)[:, 0] * W
             gy = _contract(gv.unsqueeze(1), taps.wx, taps.dwy)[:, 0] * H
-            # A NaN / inf uv passes no gradient back either (as the native and grid_sample backends): its own
-            # NaN would reach whatever the uv came from (a mesh's shared vertex uv).
-            ok = torch.isfinite(uv[:, a:b]).all(-1, keepdim=True)
-            grad_uv.append(torch.where(ok, torch.stack((gx, gy), -1), 0.0))
+            grad_uv.append(torch.where(finite[:, a:b], torch.stack((gx, gy), -1), 0.0))
     grad_tex = grad_flat.view(Bt, C, H, W) if need_tex else None
     if not need_uv:
         return grad_tex, None

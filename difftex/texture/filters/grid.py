@@ -27,8 +27,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..wrap import fold, fold_slope, pad_index, wrap_index
-from .gather import reduce_coordinate, separable_backward, separable_forward
+from ..wrap import fold, fold_slope, pad_index
+from .gather import reduce_coordinate, reduce_uv, separable_backward, separable_forward
 
 _GS_MODE = {"nearest": "nearest", "linear": "bilinear", "cubic": "bicubic"}
 # Texels a tap may reach beyond [0, n) after folding: bicubic reads 2.
@@ -109,13 +109,6 @@ def _fold(u: Tensor, mode: str) -> Tensor:
     stop every tap is off the texture, so the read is the same.
     """
     return fold(u, mode) if mode in ("repeat", "mirror") else reduce_coordinate(u, mode)
-
-
-def _nearest_centre(u: Tensor, n: int, mode: str) -> Tensor:
-    """The centre of the texel that a nearest read of ``u`` picks on an axis of ``n`` texels, by the reference's
-    rule (``reduce_coordinate``, ``x = u n - 0.5`` rounded half to even, the integer wrap of ``mode``)."""
-    i, _ = wrap_index(torch.round(reduce_coordinate(u, mode) * n - 0.5), n, mode)
-    return (i.to(u.dtype) + 0.5) / n
 
 
 _GS_ENUM = {"linear": 0, "nearest": 1, "cubic": 2}  # aten's GridSamplerInterpolation
@@ -200,22 +193,24 @@ class FastSample:
         if uv.device.type != "cpu" or not bool(torch.isfinite(uv.sum())):
             self.bad = ~torch.isfinite(uv).all(-1)
             uv = torch.where(self.bad.unsqueeze(-1), 0.0, uv)
-        if wrap_u == wrap_v:
-            folded = _fold(uv, wrap_u)
-        else:
-            folded = torch.stack((_fold(uv[..., 0], wrap_u), _fold(uv[..., 1], wrap_v)), -1)
+        periodic = {wrap_u, wrap_v} & {"repeat", "mirror"}
+        src = uv
         if kind == "nearest":
-            # To the centre of the texel that x = u * n - 0.5 rounds to (half
-            # to even, as the reference and grid_sample): grid_sample's own
-            # rounding would see a tie through the padded texture's rescaled
-            # coordinates, which are not exact, and could pick either side.
             size = uv.new_tensor([W, H])
+            if periodic:
+                # x = u * n - 0.5 rounds to its texel (half to even, as the reference and the kernel) before
+                # the wrap: folding u first moves a tie across a mirror (or an odd number of texels) to its
+                # other side. The texel's centre is folded instead, onto a texel centre.
+                src = (torch.round(reduce_uv(uv, wrap_u, wrap_v) * size - 0.5) + 0.5) / size
+        if wrap_u == wrap_v:
+            folded = _fold(src, wrap_u)
+        else:
+            folded = torch.stack((_fold(src[..., 0], wrap_u), _fold(src[..., 1], wrap_v)), -1)
+        if kind == "nearest" and periodic != {wrap_u, wrap_v}:
+            # To the centre of the texel that x rounds to on a clamp / border axis: grid_sample's own rounding
+            # would see a tie through the padded texture's rescaled coordinates, which are not exact, and
+            # could pick either side. (A periodic axis holds a texel centre already.)
             folded = (torch.round(folded * size - 0.5) + 0.5) / size
-            if {wrap_u, wrap_v} & {"repeat", "mirror"}:
-                # There the rounding must come before the wrap, as the reference does it: the fold moves a tie
-                # across a mirror (or an odd number of texels) to the other side of it.
-                folded = torch.stack([_nearest_centre(uv[..., a], n, m) if m in ("repeat", "mirror") else folded[..., a]
-                                      for a, (n, m) in enumerate(((W, wrap_u), (H, wrap_v)))], -1)
         self.uv, self.folded = uv, folded
         self.edge = None
         if shared and (wrap_u, wrap_v) != ("clamp", "clamp") and H * W > B * M:

@@ -36,8 +36,12 @@ constexpr int kTcAx[6] = {1, 1, 2, 2, 1, 1};
 constexpr double kTcSg[6] = {-1, -1, 1, -1, -1, -1};
 constexpr int kMaAx[6] = {0, 0, 1, 1, 2, 2};
 constexpr double kMaSg[6] = {1, -1, 1, -1, 1, -1};
-// mapping/common.py DIR_FLOOR: the floor of m_a (its square, in i2, stays a normal double).
-constexpr double kEps = 1e-150;
+// mapping/common.py dir_floor, by the inputs' dtype (float64: DIR_FLOOR, whose square, in i2, stays a normal
+// double; float32: 1e-30, as the torch path computes in float32). A direction whose m_a on its own face is
+// below it reads as the zero vector's face centre, with a point footprint and no gradient (the torch path's
+// m_a = inf); a neighbouring face's m_a is clamped to it (cube.py _face_derivs).
+constexpr double kEps = 1e-150, kEpsFloat = 1e-30;
+template <bool kFloat> constexpr double eps_of() { return kFloat ? kEpsFloat : kEps; }
 constexpr double kLn2 = 0.69314718055994530942;
 
 // log2 of a finite x > 0, faster than std::log2 here: the exponent from the bits, and the mantissa m in
@@ -93,12 +97,19 @@ struct Measure {
 };
 
 template <bool kFloat>
-DT_INLINE void measure(int f, const double* d, const double* x, const double* y, double S2, Measure* s) {
+DT_INLINE void measure(int f, bool own, const double* d, const double* x, const double* y, double S2, Measure* s) {
   s->f = f;
   s->p1 = kScSg[f] * d[kScAx[f]];
   s->p2 = kTcSg[f] * d[kTcAx[f]];
   s->p3r = kMaSg[f] * d[kMaAx[f]];
-  s->p3 = s->p3r < kEps ? kEps : s->p3r;
+  s->p3 = s->p3r < eps_of<kFloat>() ? eps_of<kFloat>() : s->p3r;
+  if (own && s->p3r < eps_of<kFloat>()) {  // the own face below the floor: a point (level 0)
+    s->i2 = s->x1 = s->x2 = s->x3 = s->y1 = s->y2 = s->y3 = s->ux = s->vx = s->uy = s->vy = 0;
+    s->qx = s->qy = s->q = 0;
+    s->live = false;
+    s->m = -kFar;
+    return;
+  }
   s->i2 = 1.0 / (s->p3 * s->p3);
   s->x1 = kScSg[f] * x[kScAx[f]], s->x2 = kTcSg[f] * x[kTcAx[f]], s->x3 = kMaSg[f] * x[kMaAx[f]];
   s->y1 = kScSg[f] * y[kScAx[f]], s->y2 = kTcSg[f] * y[kTcAx[f]], s->y3 = kMaSg[f] * y[kMaAx[f]];
@@ -130,7 +141,7 @@ DT_INLINE void measure_grad(const Measure& s, double gm, double* gd, double* gx,
   };
   chain(lx, s.ux, s.vx, s.x1, s.x2, s.x3, gx);
   chain(ly, s.uy, s.vy, s.y1, s.y2, s.y3, gy);
-  if (s.p3r < kEps) g3 = 0;  // clamp_min
+  if (s.p3r < s.p3) g3 = 0;  // clamp_min
   to_xyz(s.f, g1, g2, g3, gd);
 }
 
@@ -150,7 +161,7 @@ DT_INLINE double front_point(const double* d, const double* x, const double* y, 
                              double top, double* gd, double* gx, double* gy) {
   const int f = face_of(d);
   const double p1 = kScSg[f] * d[kScAx[f]], p2 = kTcSg[f] * d[kTcAx[f]], p3r = kMaSg[f] * d[kMaAx[f]];
-  const double p3 = p3r < kEps ? kEps : p3r;
+  const double p3 = p3r < eps_of<kFloat>() ? std::numeric_limits<double>::infinity() : p3r;
   const double a = p1 / p3, b = p2 / p3;
   if (!kGrad) {
     *face = static_cast<int8_t>(f);
@@ -160,7 +171,7 @@ DT_INLINE double front_point(const double* d, const double* x, const double* y, 
   double ga = kGrad ? 0.5 * guv[0] : 0.0, gb = kGrad ? 0.5 * guv[1] : 0.0, gl = 0.0;
   if (x != nullptr && (!kGrad || gD != 0)) {
     Measure own, nb[2];
-    measure<kFloat>(f, d, x, y, S2, &own);
+    measure<kFloat>(f, true, d, x, y, S2, &own);
     double num = own.m, den = 1.0, w[2] = {0, 0};
     const double c[2] = {a, b};
     for (int axis = 0; axis < 2; ++axis) {
@@ -169,7 +180,7 @@ DT_INLINE double front_point(const double* d, const double* x, const double* y, 
       if (!(w[axis] > 0)) continue;
       const int ax = axis == 0 ? kScAx[f] : kTcAx[f];
       const double sg = axis == 0 ? kScSg[f] : kTcSg[f];
-      measure<kFloat>(2 * ax + (c[axis] * sg < 0 ? 1 : 0), d, x, y, S2, &nb[axis]);
+      measure<kFloat>(2 * ax + (c[axis] * sg < 0 ? 1 : 0), false, d, x, y, S2, &nb[axis]);
       num += w[axis] * nb[axis].m;
       den += w[axis];
     }
@@ -198,7 +209,7 @@ DT_INLINE double front_point(const double* d, const double* x, const double* y, 
   }
   if (kGrad) {
     // a = s_c / m_a, b = t_c / m_a.
-    const double g3 = p3r < kEps ? 0.0 : -(ga * p1 + gb * p2) / (p3 * p3);
+    const double g3 = p3r < p3 ? 0.0 : -(ga * p1 + gb * p2) / (p3 * p3);
     to_xyz(f, ga / p3, gb / p3, g3, gd);
   }
   return gl;
@@ -239,7 +250,9 @@ DT_INLINE int face_uv(const scalar_t* p, double* uv) {
   const double major = isx ? x : (isy ? y : z);
   const bool neg = major < 0;
   const double g = neg ? -1.0 : 1.0;
-  const double sc = isx ? -g * z : (isy ? x : g * x), tc = isy ? g * z : -y, ma = std::max(g * major, kEps);
+  const double sc = isx ? -g * z : (isy ? x : g * x), tc = isy ? g * z : -y;
+  const double ma = g * major < eps_of<std::is_same_v<scalar_t, float>>() ? std::numeric_limits<double>::infinity()
+                                                                          : g * major;
   const double r = 1.0 / ma;
   uv[0] = 0.5 * (sc * r + 1.0);
   uv[1] = 0.5 * (tc * r + 1.0);
