@@ -89,7 +89,7 @@ DT_INLINE void to_xyz(int f, double g1, double g2, double g3, double* out) {
 
 // log2 of the trilinear length (lod.py log2_length: max of the two derivative lengths, in texels; NaN or 0
 // -> -FAR, inf -> +FAR, no gradient there) of the footprint (x, y) of direction d projected on face f
-// (not necessarily d's own: m_a floored at DIR_FLOOR as cube.py _face_derivs), with what its gradient needs.
+// (not necessarily d's own: m_a floored at dir_floor as cube.py _face_derivs), with what its gradient needs.
 struct Measure {
   int f;
   bool live;  // a finite, non-zero length (else m is +-FAR, constant)
