@@ -19,12 +19,14 @@ EPS = 1e-9
 #: a normal number (the native kernel's i2), and directions down to it map
 #: exactly. (An absolute 1e-9 once sent shorter directions to the wrong texel.)
 DIR_FLOOR = 1e-150
+#: The same in float32 (and narrower), where the reciprocals taken of it and
+#: their products with a face's derivatives stay finite.
+DIR_FLOOR_FLOAT32 = 1e-30
 
 
 def dir_floor(dtype: torch.dtype) -> float:
-    """The floor of m_a in ``dtype``: DIR_FLOOR in float64; 1e-30 in float32 (and narrower), where the
-    reciprocals taken of it and their products with a face's derivatives stay finite."""
-    return DIR_FLOOR if dtype == torch.float64 else 1e-30
+    """The floor of m_a in ``dtype`` (the native kernel mirrors both constants)."""
+    return DIR_FLOOR if dtype == torch.float64 else DIR_FLOOR_FLOAT32
 
 
 #: Cube-map face order (OpenGL ``GL_TEXTURE_CUBE_MAP_POSITIVE_X + i``).

@@ -282,6 +282,8 @@ def test_the_kernel_constants_are_the_python_ones():
     assert k.ALPHA == ewa.ALPHA and k.MAX_MINOR == ewa.MAX_MINOR
     assert k.INDEX_CAP == wrap.INDEX_CAP == 2.0 ** 52
     assert k.WRAP_CODES == wrap.WRAP_CODES
+    common = importlib.import_module("difftex.mapping.common")
+    assert k.DIR_FLOOR == common.DIR_FLOOR and k.DIR_FLOOR_FLOAT32 == common.DIR_FLOOR_FLOAT32
 
 
 @needs_kernel

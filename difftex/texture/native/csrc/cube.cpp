@@ -36,12 +36,10 @@ constexpr int kTcAx[6] = {1, 1, 2, 2, 1, 1};
 constexpr double kTcSg[6] = {-1, -1, 1, -1, -1, -1};
 constexpr int kMaAx[6] = {0, 0, 1, 1, 2, 2};
 constexpr double kMaSg[6] = {1, -1, 1, -1, 1, -1};
-// mapping/common.py dir_floor, by the inputs' dtype (float64: DIR_FLOOR, whose square, in i2, stays a normal
-// double; float32: 1e-30, as the torch path computes in float32). A direction whose m_a on its own face is
-// below it reads as the zero vector's face centre, with a point footprint and no gradient (the torch path's
-// m_a = inf); a neighbouring face's m_a is clamped to it (cube.py _face_derivs).
-constexpr double kEps = 1e-150, kEpsFloat = 1e-30;
-template <bool kFloat> constexpr double eps_of() { return kFloat ? kEpsFloat : kEps; }
+// The floor of m_a by the inputs' dtype (cube.h; mapping/common.py dir_floor). A direction whose m_a on its
+// own face is below it reads as the zero vector's face centre, with a point footprint and no gradient (the
+// torch path's m_a = inf); a neighbouring face's m_a is clamped to it (cube.py _face_derivs).
+template <bool kFloat> constexpr double eps_of() { return kFloat ? kDirFloorFloat : kDirFloor; }
 constexpr double kLn2 = 0.69314718055994530942;
 
 // log2 of a finite x > 0, faster than std::log2 here: the exponent from the bits, and the mantissa m in

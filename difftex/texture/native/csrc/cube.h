@@ -10,6 +10,10 @@
 
 namespace difftex {
 
+// mapping/common.py DIR_FLOOR / DIR_FLOOR_FLOAT32 (module.cpp exports them): the floor of a cube face's m_a
+// by the inputs' dtype; cube.cpp says how a direction below it reads.
+constexpr double kDirFloor = 1e-150, kDirFloorFloat = 1e-30;
+
 // The front end, no graph: dirs [M, 3], dx / dy [M, 3] d(dirs) per pixel column / row (both empty: no
 // level); bias [M] (empty: bias0), S the face size, levels the pyramid's, band envmap/cube.py EDGE_BAND.
 // -> (face [M] int8, -1 for a zero and -2 for a non-finite direction; face uv [M, 2]; the level D [M]:

@@ -96,6 +96,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.attr("LOG2_FLOOR") = kLog2Floor;
   m.attr("ALPHA") = kAlpha;
   m.attr("MAX_MINOR") = kMaxMinor;
+  m.attr("DIR_FLOOR") = kDirFloor;
+  m.attr("DIR_FLOOR_FLOAT32") = kDirFloorFloat;
   py::dict codes;
   codes["repeat"] = static_cast<int>(REPEAT);
   codes["clamp"] = static_cast<int>(CLAMP);
