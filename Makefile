@@ -8,11 +8,12 @@ PY := $(VENV)/bin/python
 
 .PHONY: demo test bench clean
 
-$(VENV)/.installed: pyproject.toml
+$(VENV)/.installed: pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q "$(TORCH)"
-	$(PY) -m pip install -q -e ".[test,experiments]"
+	$(PY) -m pip install -q "$(TORCH)" setuptools wheel ninja
+	# --no-build-isolation: the native kernels build against the torch just installed (setup.py)
+	$(PY) -m pip install -q --no-build-isolation -e ".[test,experiments]"
 	touch $@
 
 demo: $(VENV)/.installed

@@ -3,7 +3,7 @@
 difftex has three implementations of its reads, all giving the same values
 and gradients to rounding (the tests hold them equal):
 
-* ``"native"``: the C++ CPU kernel (``difftex.texture.native``) for the
+* ``"native"``: the C++ CPU kernel (``difftex._native``) for the
   single-level reads (nearest, bilinear, bicubic), the mip filters' taps
   and footprint front end, EWA and the pyramid's box step; float32 /
   float64 tensors on the CPU, where the kernel built.
@@ -87,7 +87,7 @@ def wants_native(like: Tensor) -> bool:
     """Whether reads of tensors like ``like`` go to the native kernel, where it is built.
 
     Yes for float32 / float64 CPU tensors under the choices "auto" and
-    "native"; ``difftex.texture.native.kernel`` adds whether it built.
+    "native"; ``difftex._native.kernel`` adds whether it built.
     """
     return (current() in ("auto", "native") and like.device.type == "cpu"
             and like.dtype in (torch.float32, torch.float64))

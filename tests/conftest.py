@@ -3,7 +3,7 @@ import pytest
 import torch
 
 import difftex
-from difftex.texture import native
+from difftex import _native as native
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 DTYPES = [torch.float32, torch.float64]

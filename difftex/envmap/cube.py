@@ -156,7 +156,7 @@ from ..texture.pyramid.mipmap import Pyramid, level_count, mipmap
 from ..texture.sample import sample
 from ..texture.taps import taps
 from ..backend import single_level
-from ..texture import native
+from .. import _native as native
 from .directions import _face_coords, check_dirs_derivs, cube_to_direction, direction_to_cube
 
 #: Width, in [-1, 1] face coordinates, of the band along each edge over which the trilinear level

@@ -10,8 +10,9 @@ and coverage / opacity ``a_i`` (nearest first) the result is
 
 and the accumulated alpha is ``1 - T_L``. ``T_i`` is the light that reaches
 layer ``i`` through the layers in front of it; once a layer with ``a = 1``
-is met it is exactly 0, so every later layer contributes nothing and gets
-a zero gradient.
+is met it is exactly 0, and every later layer of that pixel is not read
+(selected away, not multiplied by 0: a NaN there stays out), contributes
+nothing and gets a zero gradient.
 """
 from __future__ import annotations
 
@@ -40,9 +41,16 @@ def composite(colors: Tensor, alphas: Tensor) -> tuple[Tensor, Tensor]:
         background ``bg`` with ``color + (1 - alpha) * bg``.
 
     Differentiable with respect to ``colors`` and ``alphas``. Where the
-    accumulated alpha reaches 1 (an opaque layer) the layers behind get
-    exactly zero weight and zero gradient; layers behind an opaque layer in
-    every pixel are not evaluated at all. Alphas outside [0, 1] are not
+    accumulated alpha reaches 1 (an opaque layer) the layers behind are not
+    read: they get exactly zero weight and zero gradient, so a NaN or inf
+    colour or alpha there changes neither the pixel nor any gradient; layers
+    behind an opaque layer in every pixel are not evaluated at all. As they
+    are not read, the gradient to an alpha of exactly 1 is ``T_i c_i`` alone
+    (``T_i = prod_{j<i}(1 - a_j)``; the same whether the opaque layer covers
+    one pixel or every pixel), not the ``T_i (c_i - behind)`` that reading
+    the layers behind would add.
+    A NaN in a layer that is read (not occluded) makes its own pixel NaN,
+    value and gradients, and no other pixel. Alphas outside [0, 1] are not
     checked (a check would cost a device sync) and extrapolate the formula.
     Raises TypeError on non-float input, ValueError naming the argument on
     bad shapes, mismatched layer counts or devices.
@@ -68,8 +76,16 @@ def composite(colors: Tensor, alphas: Tensor) -> tuple[Tensor, Tensor]:
     out = torch.zeros((B, C, H, W), dtype=dtype, device=colors.device)
     trans = torch.ones((B, 1, H, W), dtype=dtype, device=colors.device)
     for i in range(colors.shape[0]):
-        a = alphas[i].to(dtype)
-        out = out + (a * trans) * colors[i].to(dtype)
+        # A pixel whose transmittance is exactly 0 (an opaque layer in front) does not read this layer:
+        # torch.where selects 0 there instead of multiplying the layer by the zero transmittance, which
+        # would keep a NaN / inf colour or alpha (0 * NaN = NaN) in the value and, through the product's
+        # backward (0 * NaN again), in every gradient of the pixel. where's backward routes exact zeros
+        # to the unselected input, so the layer gets a zero gradient there, not 0 * grad; and the zeroed
+        # alpha keeps the transmittance at 0 (0 * (1 - NaN) would be NaN) for the layers further back.
+        seen = (trans != 0).detach()
+        a = torch.where(seen, alphas[i].to(dtype), 0.0)
+        c = torch.where(seen, colors[i].to(dtype), 0.0)
+        out = out + (a * trans) * c
         trans = trans * (1 - a)
         # The alpha buffer's early stop: every pixel is opaque, nothing
         # behind can show. One sync per layer, for L small.

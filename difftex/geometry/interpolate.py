@@ -107,13 +107,23 @@ def interpolate(
     else:  # B == 1 < Ba: every attribute set on the same fragments
         vals = attr.index_select(1, corner.reshape(-1)).view(Ba, -1, 3, A)
     out_rows = Bo * HW if vals.shape[0] == 1 else HW
+    # A non-finite attribute (a degenerate triangle's NaN normal, say) on a fragment that the loss does not
+    # see (hidden behind an opaque layer: composite passes it an exact zero gradient) would still send
+    # 0 * NaN = NaN to the barycentrics and the positions through the product's backward; _Blend passes an
+    # exact zero there instead. Only where some attribute is not finite (one check of the small attr
+    # tensor), so the common path stays as it was.
+    guard = (torch.is_grad_enabled() and (attr.requires_grad or frags.bary.requires_grad)
+             and not bool(torch.isfinite(attr).all()))
 
     def weigh(wc: Tensor) -> Tensor:
         wc = wc.to(dtype)[None, :, :, None]
-        # Three products summed explicitly: a reduction over the size-3 axis
-        # is several times slower on CPU (measured).
-        vc = vals[:, :, 0] * wc[:, :, 0]  # [Bv, N, A]
-        vc = vc.addcmul_(vals[:, :, 1], wc[:, :, 1]).addcmul_(vals[:, :, 2], wc[:, :, 2])
+        if guard:
+            vc = _Blend.apply(vals, wc)
+        else:
+            # Three products summed explicitly: a reduction over the size-3 axis
+            # is several times slower on CPU (measured).
+            vc = vals[:, :, 0] * wc[:, :, 0]  # [Bv, N, A]
+            vc = vc.addcmul_(vals[:, :, 1], wc[:, :, 1]).addcmul_(vals[:, :, 2], wc[:, :, 2])
         out = torch.zeros((vals.shape[0], out_rows, A), dtype=dtype, device=device)
         out.index_copy_(1, idx, vc)  # in place on fresh zeros: no extra copy
         return out.view(Bo, H, W, A)
@@ -122,3 +132,29 @@ def interpolate(
     if not derivatives:
         return value
     return value, weigh(w_dx), weigh(w_dy)
+
+
+class _Blend(torch.autograd.Function):
+    """``sum_k vals[:, :, k] * w[:, :, k]``: vals [Bv, N, 3, A], w [1, N, 3, 1] -> [Bv, N, A].
+
+    The same values as the explicit products; the backward passes an exact zero to ``w`` wherever the
+    upstream gradient is zero, rather than ``0 * vals``, which is NaN for a non-finite attribute. A
+    non-zero upstream gradient meets the attribute as before (NaN stays in its own pixel). The backward
+    is made of differentiable ops, so double backward works.
+    """
+
+    @staticmethod
+    def forward(ctx, vals: Tensor, w: Tensor) -> Tensor:
+        ctx.save_for_backward(vals, w)
+        vc = vals[:, :, 0] * w[:, :, 0]
+        return vc.addcmul_(vals[:, :, 1], w[:, :, 1]).addcmul_(vals[:, :, 2], w[:, :, 2])
+
+    @staticmethod
+    def backward(ctx, g: Tensor):
+        vals, w = ctx.saved_tensors
+        g3 = g.unsqueeze(2)  # [Bv, N, 1, A]
+        g_vals = g3 * w if ctx.needs_input_grad[0] else None
+        g_w = None
+        if ctx.needs_input_grad[1]:
+            g_w = torch.where(g3 == 0, torch.zeros_like(vals), g3 * vals).sum(-1, keepdim=True).sum(0, keepdim=True)
+        return g_vals, g_w

@@ -101,7 +101,9 @@ def vertex_normals(positions: Tensor, faces: Tensor) -> Tensor:
     """
     positions = check_float("positions", positions, ndim=2, last=3, shape_doc="[V, 3]")
     faces = check_index("faces", faces, positions.shape[0], "number of vertices", positions.device)
-    p = positions[faces]  # [F, 3, 3]
+    # index_select, not positions[faces]: a vertex is shared by several faces, and the CPU backward of
+    # advanced indexing sums their terms with atomics in a run-dependent order (DESIGN.md, "determinism").
+    p = positions.index_select(0, faces.reshape(-1)).view(-1, 3, 3)  # [F, 3, 3]
     fn = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # length = 2 * area
     n = torch.zeros_like(positions).index_add(0, faces.reshape(-1), fn.repeat_interleave(3, dim=0))
     return unit(n)

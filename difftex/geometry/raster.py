@@ -639,7 +639,7 @@ def _visibility(pos: Tensor, faces: Tensor, H: int, W: int, cull_backfaces: bool
     once, ids [layers, B, H, W] and the last layer's depth [B * H * W] (the
     torch path returns one layer whatever ``layers`` says).
     """
-    from ..texture import native
+    from .. import _native as native
 
     pos = pos.detach()
     B = pos.shape[0]
@@ -685,7 +685,7 @@ def _coverage_count(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cu
     without culling, {0, 1} with it); not part of the public API. Runs the
     implementation ``difftex.backend`` chooses, like :func:`rasterize`.
     """
-    from ..texture import native
+    from .. import _native as native
 
     pos = _check_pos(pos)
     faces = check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
@@ -951,7 +951,7 @@ def visible_layers(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_b
     Yields what ``emit`` returns. The ids are not differentiable; ``emit``
     decides what is. Raises what :func:`rasterize` raises.
     """
-    from ..texture import native
+    from .. import _native as native
 
     # The native kernel tests finiteness and the index range in passes over
     # every vertex and triangle it makes anyway (on 1.3M triangles the
@@ -982,7 +982,7 @@ def fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
     with respect to ``pos`` (native forward and first-order backward on the
     CPU, the torch formula elsewhere and for double backward).
     """
-    from ..texture import native
+    from .. import _native as native
 
     mod = native.kernel(pos)
     if mod is not None:
@@ -1021,7 +1021,7 @@ def packed_fragments(pos: Tensor, faces: Tensor, tri_id: Tensor,
     b0, b1 and rast_db are differentiable with respect to ``pos``; the depth
     and id columns are not.
     """
-    from ..texture import native
+    from .. import _native as native
 
     mod = native.kernel(pos)
     if mod is None:

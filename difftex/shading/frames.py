@@ -131,7 +131,10 @@ def tangent_frames(pos: Tensor, faces: Tensor, uv: Tensor, normals: Optional[Ten
     check_same("normals", normals, "pos", pos)
     nf = index("normal_faces", normal_faces, normals.shape[0], "normals")
 
-    p, t = pos[faces], uv[uvf]  # [F, 3, 3], [F, 3, 2]
+    # index_select, not pos[faces]: shared vertices would get their gradient terms summed by atomics in a
+    # run-dependent order (DESIGN.md, "determinism").
+    p = pos.index_select(0, faces.reshape(-1)).view(-1, 3, 3)  # [F, 3, 3]
+    t = uv.index_select(0, uvf.reshape(-1)).view(-1, 3, 2)  # [F, 3, 2]
     # Per corner k: edges to the next two corners (k+1, k+2), so every corner sees its own angle.
     nxt, prv = [1, 2, 0], [2, 0, 1]
     e1, e2 = p[:, nxt] - p, p[:, prv] - p
@@ -162,7 +165,7 @@ def tangent_frames(pos: Tensor, faces: Tensor, uv: Tensor, normals: Optional[Ten
 
     t_sum = torch.zeros(n_rows, 3, dtype=pos.dtype, device=dev).index_add(0, rows, tan.reshape(-1, 3))
     b_sum = torch.zeros(n_rows, 3, dtype=pos.dtype, device=dev).index_add(0, rows, bit.reshape(-1, 3))
-    n = unit(normals[uniq[:, 2]])
+    n = unit(normals.index_select(0, uniq[:, 2]))  # rows may share a normal: index_select, as above
     t_out = orthonormal_tangents(t_sum, n)
     w = torch.where(dot(torch.cross(n, t_out, dim=-1), b_sum) < 0, -1.0, 1.0).to(pos.dtype)
     return TangentFrames(torch.cat([t_out, w], dim=-1), n, rows.reshape(F, 3))

@@ -3,8 +3,8 @@
 Inside: ``sample`` (checks and dispatch), ``options`` (filter names, caps),
 ``wrap`` (every wrap rule), ``lod`` (footprint and level formula), ``taps``
 (the mip filters' front end), ``pyramid/`` (mipmaps, ripmaps), ``filters/`` (the
-gather reference, the grid_sample path and the filters built on them) and
-``native/`` (the C++ CPU kernel); ``difftex.backend`` picks among them.
+gather reference, the grid_sample path and the filters built on them); the
+C++ CPU kernels are ``difftex._native`` (``difftex/csrc``); ``difftex.backend`` picks.
 Also: ``volume`` (``sample3d``, 3D textures), ``noise`` (Perlin noise, fBm,
 wood / marble solid textures) and ``baking`` (``bake``, ambient occlusion).
 """

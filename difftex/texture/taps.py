@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from .._checks import broadcast_batch, check_float, check_same
-from . import native
+from .. import _native as native
 from .filters.anisotropic import anisotropic_taps, tap_count
 from .filters.auto import auto_tap_count
 from .lod import check_lod_bias, ellipse, footprint, level, log2_length, size_and_levels

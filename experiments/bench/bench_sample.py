@@ -58,7 +58,7 @@ import torch
 
 import difftex
 from difftex.testing import time_interleaved
-from difftex.texture import native
+from difftex import _native as native
 
 FILTERS = {"bilinear": "Linear", "bicubic": "cubic", "nearest": "Nearest"}
 DRJIT_WRAPS = ("repeat", "clamp", "mirror")

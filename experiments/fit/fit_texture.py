@@ -191,7 +191,7 @@ def fit(filter: str = "trilinear", iters: int = 300, res: int = 128, views: int 
     mesh = spot_mesh()
     true_tex = spot_texture().to(dev)
     mvp = random_views(views, seed).to(dev)
-    difftex.texture.native.load()  # the native CPU kernel's first-use build stays out of the timings
+    difftex._native.load()  # the native CPU kernel's first-use build stays out of the timings
 
     t0 = time.perf_counter()
     target_model = difftex.TexturedMesh(mesh, true_tex, filter=target_filter, learn_texture=False).to(dev)
@@ -278,7 +278,7 @@ def fit_capture(capture: str | Path, mesh: str | Path, filter: str = "trilinear"
     init = torch.full((1, 3, tex_size, tex_size), 0.5, device=dev)
     model = difftex.TexturedMesh(difftex.load_mesh(mesh), init, filter=filter).to(dev)
     if dev.type == "cpu":
-        difftex.texture.native.load()
+        difftex._native.load()
 
     # Each process rasterizes its share of the frames once; the counts are summed over processes.
     mvp_all = cap.mvp().to(dev)

@@ -407,7 +407,7 @@ def test_eight_triangle_filter_matches_scalar_path(dtype, cull):
     # mode of the kernel (z-buffer, floor, count, k-buffer), and the torch
     # path's ids.
     from difftex.geometry.raster import _subpixel_bits, _visibility
-    from difftex.texture import native
+    from difftex import _native as native
 
     kernel = native.load()
     if kernel is None:

@@ -18,7 +18,7 @@ per point and level. Pairs are processed in chunks of bounded size; with
 gradients and more than one chunk, each chunk is checkpointed (recomputed in
 the backward pass) so memory stays bounded too. Texels are read through ``difftex.wrap.wrap_index``.
 On the CPU the same computation runs in the native kernel
-(``difftex.texture.native``: point by point, forward and first-order backward);
+(``difftex._native``: point by point, forward and first-order backward);
 these torch ops are its reference and serve CUDA and double backward.
 
 Where the level is clamped at the coarsest level and the ellipse is still
@@ -40,7 +40,7 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from .. import native
+from ... import _native as native
 from ..lod import Ellipse, Footprint, level
 from ..wrap import WRAP_CODES, drop_periods, wrap_index
 from .trilinear import mip_blend, per_level
@@ -48,6 +48,7 @@ from .trilinear import mip_blend, per_level
 ALPHA = 2.0                       # pbrt-v4's Gaussian falloff
 _CHUNK = 1 << 20                  # (point, texel) pairs per chunk
 MAX_MINOR = 2.0                   # level-k texels, see the module docstring
+FAR_UV = 2.0 ** 60                # clamp / border: uv capped here (_far_clamped)
 
 
 def covariance(fp: Footprint, ell: Ellipse, max_aniso: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -97,13 +98,19 @@ def _ewa_chunk(flat: Tensor, H: int, W: int, ox: Tensor, oy: Tensor, sx: Tensor,
     """EWA of one level at a chunk of points: [C + 1, m] (weighted sums, then the weight sum)."""
     with torch.no_grad():
         point, rx, ry = _pairs(sx.detach(), sy.detach(), sxx.detach(), sxy.detach(), syy.detach())
-    ss = rx - sx[point]
-    tt = ry - sy[point]
+    # index_select, not advanced indexing (sx[point]): a point owns many pairs, so the backward sums many
+    # terms into each point's entry, and the CPU backward of advanced indexing (index_put with accumulate)
+    # adds them with atomics from several threads, in an order that changes from run to run; index_select's
+    # backward (index_add along dim 0 of a 1-D tensor) adds them one by one in pair order (DESIGN.md,
+    # "determinism").
+    per_pair = lambda x: x.index_select(0, point)  # noqa: E731
+    ss = rx - per_pair(sx)
+    tt = ry - per_pair(sy)
     det = sxx * syy - sxy * sxy
-    r2 = (syy[point] * ss * ss - 2 * sxy[point] * ss * tt + sxx[point] * tt * tt) / det[point]
+    r2 = (per_pair(syy) * ss * ss - 2 * per_pair(sxy) * ss * tt + per_pair(sxx) * tt * tt) / per_pair(det)
     w = (torch.exp(-ALPHA * r2) - math.exp(-ALPHA)).clamp(min=0)
-    ix, vx = wrap_index(ox[point] + rx, W, wrap_u)
-    iy, vy = wrap_index(oy[point] + ry, H, wrap_v)
+    ix, vx = wrap_index(per_pair(ox) + rx, W, wrap_u)
+    iy, vy = wrap_index(per_pair(oy) + ry, H, wrap_v)
     vals = flat.index_select(1, iy * W + ix)
     valid = vx if vy is None else (vy if vx is None else vx & vy)
     if valid is not None:
@@ -187,7 +194,8 @@ def ewa_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse
     # |uv| ~ 1e6 that product rounds to 4 texels in float32 (64-texel
     # texture), which the integer origin in _ewa_level cannot undo; the
     # difference of uv and its floor is exact. (repeat: period 1, mirror: 2.)
-    uv_safe = torch.stack([drop_periods(uv_safe[:, 0], wrap_u), drop_periods(uv_safe[:, 1], wrap_v)], -1)
+    uv_safe = torch.stack([_far_clamped(drop_periods(uv_safe[:, 0], wrap_u), wrap_u),
+                           _far_clamped(drop_periods(uv_safe[:, 1], wrap_v), wrap_v)], -1)
     sigma, minor, log2_minor = covariance(fp, ell, max_aniso)
     D = level(log2_minor, lod_bias, len(levels))
     scale = torch.exp2(fp.log2_scale)
@@ -196,6 +204,21 @@ def ewa_points(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse
     else:
         out = _ewa_torch(levels, uv_safe, sigma, minor, scale, D, H, W, wrap_u, wrap_v, border)
     return torch.where(ok, out, torch.full_like(out, float("nan")))
+
+
+def _far_clamped(u: Tensor, mode: str) -> Tensor:
+    """clamp / border: u capped at +-``FAR_UV`` (the same read), gradient 1; other modes (periods dropped) as is.
+
+    Past ``FAR_UV`` = 2^60 the texel position ``u * W`` would overflow float32 (3e38 * 8 = inf, whose
+    fraction ``inf - floor(inf)`` is NaN: the torch path then failed on a negative row count), yet
+    nothing changes there: every texel of any ellipse (at most ``MAX_ANISO`` times a level's side)
+    is past the edge, so it reads the edge texel (the border constant), and ``u * W - 0.5`` has no
+    fraction left at 2^60 as at any larger u, so the Gaussian weights, which depend on that
+    fraction, are the same too. The gradient passes straight through, as it does unclamped.
+    """
+    if mode not in ("clamp", "border") or torch.finfo(u.dtype).max <= FAR_UV:  # float16's floats are all below
+        return u
+    return u.detach().clamp(-FAR_UV, FAR_UV) + (u - u.detach())  # u - u.detach(): an exact 0, gradient 1
 
 
 def _ewa_torch(levels: Sequence[Tensor], uv: Tensor, sigma: Tensor, minor: Tensor, scale: Tensor, D: Tensor,
@@ -210,7 +233,7 @@ def _ewa_torch(levels: Sequence[Tensor], uv: Tensor, sigma: Tensor, minor: Tenso
 
 
 class _NativeEWA(torch.autograd.Function):
-    """EWA on the native CPU kernel (``difftex.texture.native``), forward and first-order backward.
+    """EWA on the native CPU kernel (``difftex._native``), forward and first-order backward.
 
     uv [M, 2] (periods dropped, finite), sigma [M, 3], minor [M], scale [M],
     D [M], levels ``[1, C, H_k, W_k]`` -> [C, M]; the same values and

@@ -35,7 +35,7 @@ from typing import Optional, Union
 import torch
 from torch import Tensor
 
-from .. import native
+from ... import _native as native
 from ..lod import footprint, level, log2_extents
 from ..pyramid.ripmap import Ripmap, build_ripmap, ripmap_counts
 from ..taps import levels_read

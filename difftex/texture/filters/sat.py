@@ -63,7 +63,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .. import native
+from ... import _native as native
 from ..lod import footprint, level, log2_extents
 from ..wrap import drop_periods, floor_index
 

@@ -1,7 +1,7 @@
 """The single-level read that every filter calls: one autograd node over the three implementations.
 
 ``difftex.backend`` picks the implementation: the native CPU kernel
-(``difftex.texture.native``, ``csrc/single.cpp``: float32 / float64 on the
+(``difftex._native``, ``csrc/single.cpp``: float32 / float64 on the
 CPU, where it is built), the grid_sample path (``grid.py``: forward and
 first-order backward on grid_sample) or the gather reference
 (``gather.py``). Double backward always runs the reference backward, which
@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from ...backend import single_level
-from .. import native
+from ... import _native as native
 from ..wrap import WRAP_CODES
 from .gather import separable_backward, separable_forward
 from .grid import FastSample, fast_forward

@@ -3,7 +3,7 @@
 This is the *trilinear tap* that the anisotropic filter calls (N taps along
 the major axis per point), and ``mip_blend``, its level grouping and blend,
 is shared with the EWA filter. On the CPU ``trilinear_points`` runs the
-native kernel (``difftex.texture.native``: one pass over the points, taps and
+native kernel (``difftex._native``: one pass over the points, taps and
 levels included). The torch path below serves CUDA, float16, double
 backward and machines without the kernel, and is the reference the tests
 compare the kernel with. Work is proportional to the points a level serves: points are
@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from ...backend import single_level
-from .. import native
+from ... import _native as native
 from ..pyramid.mipmap import build_levels, level_size, mipmap, pyramid_adjoint, step_adjoint
 from ..wrap import WRAP_CODES
 from .gather import separable_backward
@@ -132,7 +132,7 @@ class _PyramidRead(torch.autograd.Function):
 
 
 class _NativeTaps(torch.autograd.Function):
-    """``trilinear_points`` on the native CPU kernel (``difftex.texture.native``).
+    """``trilinear_points`` on the native CPU kernel (``difftex._native``).
 
     uv [M, 2], D [M], axis [M, 2] and count [M] int64 (or both None: one tap
     a point), levels ``[1, C, H_k, W_k]`` -> [C, M].
@@ -265,7 +265,7 @@ def trilinear_points(levels: Levels, uv: Tensor, D: Tensor, wrap_u: str, wrap_v:
         [C, M]. Differentiable in every level (or the texture), uv, D
         (trilinear only) and axis.
 
-    On the CPU this runs the native kernel (``difftex.texture.native``) where it is
+    On the CPU this runs the native kernel (``difftex._native``) where it is
     built, else (and on CUDA, and as the tests' reference) the torch path.
     """
     if native.kernel(uv) is not None:

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .. import native
+from ... import _native as native
 from ..._checks import check_float, check_same, describe
 
 

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import difftex
-from difftex.texture import native
+from difftex import _native as native
 from tests.conftest import use_backend
 
 f64 = torch.float64

@@ -25,7 +25,7 @@ import pytest
 import torch
 
 import difftex
-from difftex.texture import native
+from difftex import _native as native
 from difftex.texture.filters import gather
 from difftex.texture.wrap import WRAP_CODES
 from tests.conftest import use_backend

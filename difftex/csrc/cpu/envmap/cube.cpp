@@ -213,16 +213,16 @@ DT_INLINE double front_point(const double* d, const double* x, const double* y, 
   return gl;
 }
 
-void check_front(const torch::Tensor& dirs, const torch::Tensor& dx, const torch::Tensor& dy,
-                 const torch::Tensor& bias) {
-  TORCH_CHECK(dirs.dim() == 2 && dirs.size(1) == 3 && dirs.is_contiguous() && dirs.device().is_cpu(),
+void check_front(const Tensor& dirs, const Tensor& dx, const Tensor& dy,
+                 const Tensor& bias) {
+  DT_CHECK(dirs.dim() == 2 && dirs.size(1) == 3 && dirs.is_contiguous() && dirs.is_cpu(),
               "cube_front: dirs must be contiguous CPU [M, 3]");
   for (const auto* t : {&dx, &dy})
-    TORCH_CHECK(t->numel() == 0 || (t->sizes() == dirs.sizes() && t->is_contiguous() &&
+    DT_CHECK(t->numel() == 0 || (t->sizes() == dirs.sizes() && t->is_contiguous() &&
                                     t->scalar_type() == dirs.scalar_type()),
                 "cube_front: dx, dy must be contiguous [M, 3] like dirs (or both empty)");
-  TORCH_CHECK((dx.numel() == 0) == (dy.numel() == 0), "cube_front: give dx and dy together");
-  TORCH_CHECK(bias.numel() == 0 || (bias.dim() == 1 && bias.size(0) == dirs.size(0) && bias.is_contiguous() &&
+  DT_CHECK((dx.numel() == 0) == (dy.numel() == 0), "cube_front: give dx and dy together");
+  DT_CHECK(bias.numel() == 0 || (bias.dim() == 1 && bias.size(0) == dirs.size(0) && bias.is_contiguous() &&
                                     bias.scalar_type() == dirs.scalar_type()),
               "cube_front: bias must be contiguous [M] of dirs' dtype (or empty)");
 }
@@ -295,24 +295,24 @@ DT_INLINE void front_one(int64_t e, const scalar_t* pd, const scalar_t* px, cons
 
 }  // namespace
 
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> cube_front(torch::Tensor dirs, torch::Tensor dx,
-                                                                   torch::Tensor dy, torch::Tensor bias,
+std::tuple<Tensor, Tensor, Tensor> cube_front(Tensor dirs, Tensor dx,
+                                                                   Tensor dy, Tensor bias,
                                                                    double bias0, int64_t S, int64_t levels,
                                                                    double band) {
   check_front(dirs, dx, dy, bias);
   const int64_t M = dirs.size(0);
   const bool derivs = dx.numel() > 0;
-  auto face = torch::empty({M}, dirs.options().dtype(torch::kChar));
-  auto uv = torch::empty({M, 2}, dirs.options());
-  auto D = derivs ? torch::empty({M}, dirs.options()) : dirs.new_empty({0});
+  auto face = empty({M}, options_of(dirs).dtype(kInt8));
+  auto uv = empty({M, 2}, options_of(dirs));
+  auto D = derivs ? empty({M}, options_of(dirs)) : empty({0}, options_of(dirs));
   const double S2 = static_cast<double>(S) * static_cast<double>(S), top = static_cast<double>(levels - 1);
-  AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "cube_front", [&] {
-    const scalar_t *pd = dirs.data_ptr<scalar_t>(), *px = derivs ? dx.data_ptr<scalar_t>() : nullptr,
-                   *py = derivs ? dy.data_ptr<scalar_t>() : nullptr,
-                   *pb = bias.numel() ? bias.data_ptr<scalar_t>() : nullptr;
-    int8_t* pf = face.data_ptr<int8_t>();
-    scalar_t *puv = uv.data_ptr<scalar_t>(), *pD = derivs ? D.data_ptr<scalar_t>() : nullptr;
-    at::parallel_for(0, M, 2048, [&](int64_t lo, int64_t hi) {
+  DT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "cube_front", [&] {
+    const scalar_t *pd = dirs.mutable_data_ptr<scalar_t>(), *px = derivs ? dx.mutable_data_ptr<scalar_t>() : nullptr,
+                   *py = derivs ? dy.mutable_data_ptr<scalar_t>() : nullptr,
+                   *pb = bias.numel() ? bias.mutable_data_ptr<scalar_t>() : nullptr;
+    int8_t* pf = face.mutable_data_ptr<int8_t>();
+    scalar_t *puv = uv.mutable_data_ptr<scalar_t>(), *pD = derivs ? D.mutable_data_ptr<scalar_t>() : nullptr;
+    parallel_for(0, M, 2048, [&](int64_t lo, int64_t hi) {
       for (int64_t e = lo; e < hi; ++e)
         front_one(e, pd, px, py, pb, bias0, S2, band, top, pf + e, puv + 2 * e, derivs ? pD + e : nullptr);
     });
@@ -320,33 +320,33 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> cube_front(torch::Tensor
   return {face, uv, D};
 }
 
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> cube_front_backward(
-    torch::Tensor dirs, torch::Tensor dx, torch::Tensor dy, torch::Tensor bias, double bias0, int64_t S,
-    int64_t levels, double band, torch::Tensor guv, torch::Tensor gD, bool need_derivs, bool need_bias) {
+std::tuple<Tensor, Tensor, Tensor, Tensor> cube_front_backward(
+    Tensor dirs, Tensor dx, Tensor dy, Tensor bias, double bias0, int64_t S,
+    int64_t levels, double band, Tensor guv, Tensor gD, bool need_derivs, bool need_bias) {
   check_front(dirs, dx, dy, bias);
   const int64_t M = dirs.size(0);
   const bool derivs = dx.numel() > 0, has_gD = gD.numel() > 0 && derivs;
-  guv = guv.contiguous();
-  gD = gD.contiguous();
-  TORCH_CHECK(guv.dim() == 2 && guv.size(0) == M && guv.size(1) == 2 && guv.scalar_type() == dirs.scalar_type(),
+  guv = contig(guv);
+  gD = contig(gD);
+  DT_CHECK(guv.dim() == 2 && guv.size(0) == M && guv.size(1) == 2 && guv.scalar_type() == dirs.scalar_type(),
               "cube_front_backward: guv must be [M, 2] of dirs' dtype");
-  TORCH_CHECK(gD.numel() == 0 || (gD.dim() == 1 && gD.size(0) == M && gD.scalar_type() == dirs.scalar_type()),
+  DT_CHECK(gD.numel() == 0 || (gD.dim() == 1 && gD.size(0) == M && gD.scalar_type() == dirs.scalar_type()),
               "cube_front_backward: gD must be [M] of dirs' dtype (or empty)");
   need_derivs = need_derivs && has_gD;
   need_bias = need_bias && has_gD;
-  auto gd = torch::empty({M, 3}, dirs.options());
-  torch::Tensor gx = need_derivs ? torch::empty({M, 3}, dirs.options()) : torch::Tensor();
-  torch::Tensor gy = need_derivs ? torch::empty({M, 3}, dirs.options()) : torch::Tensor();
-  torch::Tensor gb = need_bias ? torch::empty({M}, dirs.options()) : torch::Tensor();
+  auto gd = empty({M, 3}, options_of(dirs));
+  Tensor gx = need_derivs ? empty({M, 3}, options_of(dirs)) : Tensor();
+  Tensor gy = need_derivs ? empty({M, 3}, options_of(dirs)) : Tensor();
+  Tensor gb = need_bias ? empty({M}, options_of(dirs)) : Tensor();
   const double S2 = static_cast<double>(S) * static_cast<double>(S), top = static_cast<double>(levels - 1);
-  AT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "cube_front_backward", [&] {
-    const scalar_t *pd = dirs.data_ptr<scalar_t>(), *px = derivs ? dx.data_ptr<scalar_t>() : nullptr,
-                   *py = derivs ? dy.data_ptr<scalar_t>() : nullptr, *pguv = guv.data_ptr<scalar_t>(),
-                   *pgD = has_gD ? gD.data_ptr<scalar_t>() : nullptr,
-                   *pb = bias.numel() ? bias.data_ptr<scalar_t>() : nullptr;
-    scalar_t *pgd = gd.data_ptr<scalar_t>(), *pgx = need_derivs ? gx.data_ptr<scalar_t>() : nullptr,
-             *pgy = need_derivs ? gy.data_ptr<scalar_t>() : nullptr, *pgb = need_bias ? gb.data_ptr<scalar_t>() : nullptr;
-    at::parallel_for(0, M, 2048, [&](int64_t lo, int64_t hi) {
+  DT_DISPATCH_FLOATING_TYPES(dirs.scalar_type(), "cube_front_backward", [&] {
+    const scalar_t *pd = dirs.mutable_data_ptr<scalar_t>(), *px = derivs ? dx.mutable_data_ptr<scalar_t>() : nullptr,
+                   *py = derivs ? dy.mutable_data_ptr<scalar_t>() : nullptr, *pguv = guv.mutable_data_ptr<scalar_t>(),
+                   *pgD = has_gD ? gD.mutable_data_ptr<scalar_t>() : nullptr,
+                   *pb = bias.numel() ? bias.mutable_data_ptr<scalar_t>() : nullptr;
+    scalar_t *pgd = gd.mutable_data_ptr<scalar_t>(), *pgx = need_derivs ? gx.mutable_data_ptr<scalar_t>() : nullptr,
+             *pgy = need_derivs ? gy.mutable_data_ptr<scalar_t>() : nullptr, *pgb = need_bias ? gb.mutable_data_ptr<scalar_t>() : nullptr;
+    parallel_for(0, M, 2048, [&](int64_t lo, int64_t hi) {
       for (int64_t e = lo; e < hi; ++e) {
         double d[3], x[3], y[3], g[3] = {0, 0, 0}, hx[3] = {0, 0, 0}, hy[3] = {0, 0, 0}, gl = 0;
         for (int i = 0; i < 3; ++i) {
@@ -499,39 +499,39 @@ DT_INLINE scalar_t fetch(const Source& s, const scalar_t* p) {
          static_cast<scalar_t>(s.w[2]) * p[s.a[2]];
 }
 
-std::vector<CubeLevel> level_tables(const std::vector<torch::Tensor>& levels, const std::vector<torch::Tensor>& ri,
-                                    const std::vector<torch::Tensor>& rw, c10::ScalarType dtype);
+std::vector<CubeLevel> level_tables(const std::vector<Tensor>& levels, const std::vector<Tensor>& ri,
+                                    const std::vector<Tensor>& rw, ScalarType dtype);
 
-std::vector<CubeLevel> cube_levels(const std::vector<torch::Tensor>& levels, const std::vector<torch::Tensor>& ri,
-                                   const std::vector<torch::Tensor>& rw, const torch::Tensor& face,
-                                   const torch::Tensor& uv, const torch::Tensor& D) {
+std::vector<CubeLevel> cube_levels(const std::vector<Tensor>& levels, const std::vector<Tensor>& ri,
+                                   const std::vector<Tensor>& rw, const Tensor& face,
+                                   const Tensor& uv, const Tensor& D) {
   const int64_t M = uv.size(0);
-  TORCH_CHECK(uv.dim() == 2 && uv.size(1) == 2 && uv.is_contiguous(), "cube_read: uv must be contiguous [M, 2]");
-  TORCH_CHECK(face.dim() == 1 && face.size(0) == M && face.scalar_type() == torch::kChar && face.is_contiguous(),
+  DT_CHECK(uv.dim() == 2 && uv.size(1) == 2 && uv.is_contiguous(), "cube_read: uv must be contiguous [M, 2]");
+  DT_CHECK(face.dim() == 1 && face.size(0) == M && face.scalar_type() == kInt8 && face.is_contiguous(),
               "cube_read: face must be contiguous int8 [M]");
-  TORCH_CHECK(D.numel() == 0 || (D.dim() == 1 && D.size(0) == M && D.scalar_type() == uv.scalar_type() &&
+  DT_CHECK(D.numel() == 0 || (D.dim() == 1 && D.size(0) == M && D.scalar_type() == uv.scalar_type() &&
                                  D.is_contiguous()),
               "cube_read: D must be contiguous [M] of uv's dtype (or empty: level 0)");
   return level_tables(levels, ri, rw, uv.scalar_type());
 }
 
-std::vector<CubeLevel> level_tables(const std::vector<torch::Tensor>& levels, const std::vector<torch::Tensor>& ri,
-                                    const std::vector<torch::Tensor>& rw, c10::ScalarType dtype) {
-  TORCH_CHECK(!levels.empty() && levels.size() == ri.size() && levels.size() == rw.size(),
+std::vector<CubeLevel> level_tables(const std::vector<Tensor>& levels, const std::vector<Tensor>& ri,
+                                    const std::vector<Tensor>& rw, ScalarType dtype) {
+  DT_CHECK(!levels.empty() && levels.size() == ri.size() && levels.size() == rw.size(),
               "cube_read: one ring table per level");
   const int64_t C = levels[0].size(1);
   std::vector<CubeLevel> out;
   for (size_t k = 0; k < levels.size(); ++k) {
     const auto& t = levels[k];
-    TORCH_CHECK(t.dim() == 4 && t.size(0) == 6 && t.size(1) == C && t.size(2) == t.size(3) && t.is_contiguous() &&
-                    t.scalar_type() == dtype && t.device().is_cpu(),
+    DT_CHECK(t.dim() == 4 && t.size(0) == 6 && t.size(1) == C && t.size(2) == t.size(3) && t.is_contiguous() &&
+                    t.scalar_type() == dtype && t.is_cpu(),
                 "cube_read: levels must be contiguous CPU [6, C, n, n] of uv's dtype");
     const int64_t n = t.size(2), P = n + 2;
-    TORCH_CHECK(ri[k].dim() == 2 && ri[k].size(0) == 6 * (4 * P - 4) && ri[k].size(1) == 3 &&
-                    ri[k].scalar_type() == torch::kInt64 && ri[k].is_contiguous() && rw[k].sizes() == ri[k].sizes() &&
-                    rw[k].scalar_type() == torch::kFloat64 && rw[k].is_contiguous(),
+    DT_CHECK(ri[k].dim() == 2 && ri[k].size(0) == 6 * (4 * P - 4) && ri[k].size(1) == 3 &&
+                    ri[k].scalar_type() == kInt64 && ri[k].is_contiguous() && rw[k].sizes() == ri[k].sizes() &&
+                    rw[k].scalar_type() == kFloat64 && rw[k].is_contiguous(),
                 "cube_read: ring tables must be contiguous [6 (4 P - 4), 3] int64 / float64");
-    out.push_back({n, P, n * n, C * n * n, 4 * P - 4, ri[k].data_ptr<int64_t>(), rw[k].data_ptr<double>()});
+    out.push_back({n, P, n * n, C * n * n, 4 * P - 4, ri[k].mutable_data_ptr<int64_t>(), rw[k].mutable_data_ptr<double>()});
   }
   return out;
 }
@@ -678,19 +678,19 @@ void by_channels(int64_t C, F&& f) {
 
 }  // namespace
 
-torch::Tensor cube_read(std::vector<torch::Tensor> levels, std::vector<torch::Tensor> ring_idx,
-                        std::vector<torch::Tensor> ring_w, torch::Tensor face, torch::Tensor uv, torch::Tensor D,
+Tensor cube_read(std::vector<Tensor> levels, std::vector<Tensor> ring_idx,
+                        std::vector<Tensor> ring_w, Tensor face, Tensor uv, Tensor D,
                         bool nearest, bool d_grad) {
   auto L = cube_levels(levels, ring_idx, ring_w, face, uv, D);
   const int64_t C = levels[0].size(1), M = uv.size(0);
-  auto out = torch::empty({C, M}, uv.options());
-  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "cube_read", [&] {
+  auto out = empty({C, M}, options_of(uv));
+  DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "cube_read", [&] {
     std::vector<const scalar_t*> lp;
-    for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
-    const int8_t* pf = face.data_ptr<int8_t>();
-    const scalar_t *puv = uv.data_ptr<scalar_t>(), *pd = D.numel() ? D.data_ptr<scalar_t>() : nullptr;
-    scalar_t* po = out.data_ptr<scalar_t>();
-    at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
+    for (const auto& t : levels) lp.push_back(t.mutable_data_ptr<scalar_t>());
+    const int8_t* pf = face.mutable_data_ptr<int8_t>();
+    const scalar_t *puv = uv.mutable_data_ptr<scalar_t>(), *pd = D.numel() ? D.mutable_data_ptr<scalar_t>() : nullptr;
+    scalar_t* po = out.mutable_data_ptr<scalar_t>();
+    parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
       by_channels(C, [&](auto cc) {
         read_range<scalar_t, decltype(cc)::value>(lo, hi, C, L, lp, pf, puv, pd, po, M, nearest, d_grad);
       });
@@ -823,29 +823,29 @@ DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<CubeLev
 
 }  // namespace
 
-std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_backward(
-    std::vector<torch::Tensor> levels, std::vector<torch::Tensor> ring_idx, std::vector<torch::Tensor> ring_w,
-    torch::Tensor face, torch::Tensor uv, torch::Tensor D, torch::Tensor grad, bool nearest, bool d_grad,
+std::tuple<std::vector<Tensor>, Tensor, Tensor> cube_read_backward(
+    std::vector<Tensor> levels, std::vector<Tensor> ring_idx, std::vector<Tensor> ring_w,
+    Tensor face, Tensor uv, Tensor D, Tensor grad, bool nearest, bool d_grad,
     bool need_levels, bool need_uv, bool need_D) {
   auto L = cube_levels(levels, ring_idx, ring_w, face, uv, D);
   const int64_t K = static_cast<int64_t>(L.size()), C = levels[0].size(1), M = uv.size(0);
-  grad = grad.contiguous();
-  TORCH_CHECK(grad.dim() == 2 && grad.size(0) == C && grad.size(1) == M && grad.scalar_type() == uv.scalar_type(),
+  grad = contig(grad);
+  DT_CHECK(grad.dim() == 2 && grad.size(0) == C && grad.size(1) == M && grad.scalar_type() == uv.scalar_type(),
               "cube_read: grad must be [C, M] of uv's dtype");
-  std::vector<torch::Tensor> gl(K);
-  torch::Tensor guv = need_uv ? torch::zeros({M, 2}, uv.options()) : torch::Tensor();
+  std::vector<Tensor> gl(K);
+  Tensor guv = need_uv ? zeros({M, 2}, options_of(uv)) : Tensor();
   need_D = need_D && D.numel() > 0;
-  torch::Tensor gD = need_D ? torch::zeros({M}, uv.options()) : torch::Tensor();
-  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "cube_read_backward", [&] {
+  Tensor gD = need_D ? zeros({M}, options_of(uv)) : Tensor();
+  DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "cube_read_backward", [&] {
     std::vector<const scalar_t*> lp;
-    for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
+    for (const auto& t : levels) lp.push_back(t.mutable_data_ptr<scalar_t>());
     CubeGrads<scalar_t> out;
     out.gp.assign(K, nullptr);
     out.gr.assign(K, nullptr);
-    out.uv = need_uv ? guv.data_ptr<scalar_t>() : nullptr;
-    out.D = need_D ? gD.data_ptr<scalar_t>() : nullptr;
-    const int8_t* pf = face.data_ptr<int8_t>();
-    const scalar_t *puv = uv.data_ptr<scalar_t>(), *pd = (D.numel() ? D.data_ptr<scalar_t>() : nullptr), *pg = grad.data_ptr<scalar_t>();
+    out.uv = need_uv ? guv.mutable_data_ptr<scalar_t>() : nullptr;
+    out.D = need_D ? gD.mutable_data_ptr<scalar_t>() : nullptr;
+    const int8_t* pf = face.mutable_data_ptr<int8_t>();
+    const scalar_t *puv = uv.mutable_data_ptr<scalar_t>(), *pd = (D.numel() ? D.mutable_data_ptr<scalar_t>() : nullptr), *pg = grad.mutable_data_ptr<scalar_t>();
     std::vector<int32_t> keys;
     ScaleBands bands;
     std::vector<std::vector<scalar_t>> rings(K);
@@ -860,8 +860,8 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_b
       });
       for (int64_t k = 0; k < K; ++k) {
         if (!read[k]) continue;
-        gl[k] = torch::zeros_like(levels[k]);
-        out.gp[k] = gl[k].template data_ptr<scalar_t>();
+        gl[k] = zeros_like(levels[k]);
+        out.gp[k] = gl[k].template mutable_data_ptr<scalar_t>();
         rings[k].assign(static_cast<size_t>(6 * L[k].ring * C), scalar_t(0));
         out.gr[k] = rings[k].data();
       }
@@ -883,7 +883,7 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_b
           }
         });
       } else {
-        at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
+        parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
           for (int64_t e = lo; e < hi; ++e) {
             if (e + kAhead < hi) ahead(e + kAhead);
             one(e);

@@ -5,7 +5,7 @@
 // no caller counts boolean positions.
 #pragma once
 
-#include <torch/extension.h>
+#include "stable.h"
 
 #include <tuple>
 #include <vector>
@@ -38,27 +38,27 @@ struct EwaNeeds {
 // forward -> [C, M]; backward -> (level gradients, undefined where no point
 // reads the level or not needed; uv [M, 2]; D [M]; axis [M, 2]), each
 // undefined where not needed.
-torch::Tensor forward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor D, torch::Tensor axis,
-                      torch::Tensor count, const ReadOptions& opts);
-std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tensor> backward(
-    std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor D, torch::Tensor axis, torch::Tensor count,
-    torch::Tensor grad, const ReadOptions& opts, const TapNeeds& need);
+Tensor forward(std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis,
+                      Tensor count, const ReadOptions& opts);
+std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
+    std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis, Tensor count,
+    Tensor grad, const ReadOptions& opts, const TapNeeds& need);
 
 // front.cpp: the taps' footprint front end, no gradient.
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, torch::Tensor dy, torch::Tensor bias,
+std::tuple<Tensor, Tensor, Tensor> front(Tensor dx, Tensor dy, Tensor bias,
                                                               double bias0, int64_t H, int64_t W, int64_t levels,
                                                               int64_t kind, double max_aniso, double tolerance);
 
 // box.cpp: one 2 x 2 box step of the pyramid.
-torch::Tensor box2(torch::Tensor x);
-torch::Tensor box2_adjoint(torch::Tensor coarse, c10::optional<torch::Tensor> fine);
+Tensor box2(Tensor x);
+Tensor box2_adjoint(Tensor coarse, std::optional<Tensor> fine);
 
 // ewa.cpp: EWA, forward [C, M] and first-order backward.
-torch::Tensor ewa(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor sigma, torch::Tensor minor,
-                  torch::Tensor scale, torch::Tensor D, int64_t full_h, int64_t full_w, const ReadOptions& opts);
-std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor>
-ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor sigma, torch::Tensor minor,
-             torch::Tensor scale, torch::Tensor D, torch::Tensor grad, int64_t full_h, int64_t full_w,
+Tensor ewa(std::vector<Tensor> levels, Tensor uv, Tensor sigma, Tensor minor,
+                  Tensor scale, Tensor D, int64_t full_h, int64_t full_w, const ReadOptions& opts);
+std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor, Tensor, Tensor>
+ewa_backward(std::vector<Tensor> levels, Tensor uv, Tensor sigma, Tensor minor,
+             Tensor scale, Tensor D, Tensor grad, int64_t full_h, int64_t full_w,
              const ReadOptions& opts, const EwaNeeds& need);
 
 // raster.cpp: rasterize's visibility pass (geometry/raster.py _visibility).
@@ -71,9 +71,9 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
 // and the K-th layer's depth [B * H * W].
 // Empty tensors where pos holds a non-finite value or faces an index
 // outside [0, V) (the caller's checks then name it).
-std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor faces, int64_t H, int64_t W,
-                                                bool cull, int64_t bits, torch::Tensor floor_z,
-                                                torch::Tensor floor_id, bool count, int64_t layers);
+std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W,
+                                                bool cull, int64_t bits, Tensor floor_z,
+                                                Tensor floor_id, bool count, int64_t layers);
 // raster.cpp: rasterize's differentiable pass, forward (geometry/raster.py
 // fragments_of; the torch _bary_at gives the gradients). pos [B, V, 4]
 // float, faces [F, 3] int64, tri_id [B, H, W] int64 (-1 background) ->
@@ -82,20 +82,20 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
 // packed, nvdiffrast's layout instead: (idx, rast [B, H, W, 4] = (b0, b1,
 // depth, id + 1 + offset), db [B, H, W, 4] = (db0/dx, db0/dy, db1/dx,
 // db1/dy)); zeros on background.
-std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor faces, torch::Tensor tri_id,
+std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
                                             bool packed, int64_t offset);
 // Its first-order backward: the output gradients as autograd gives them
 // (compact and dense, or packed; undefined: none) -> the gradient of pos.
-torch::Tensor raster_fragments_backward(torch::Tensor pos, torch::Tensor faces, torch::Tensor tri_id,
-                                        torch::Tensor idx, std::vector<torch::Tensor> grads, bool packed);
+Tensor raster_fragments_backward(Tensor pos, Tensor faces, Tensor tri_id,
+                                        Tensor idx, std::vector<Tensor> grads, bool packed);
 
 // single.cpp: the single-level reads (kind 0 nearest, 1 bilinear, 2
 // bicubic; wrap and border from opts) of texture [Bt, C, H, W] at uv
 // [B, *S, 2] (Bt = 1 or B; S any pixel shape, M = prod(S) points an entry):
 // forward -> [B, C, *S]; first-order backward (grad [B, C, *S]) ->
 // (texture gradient, uv gradient), each undefined where not needed.
-torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, const ReadOptions& opts);
-std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, torch::Tensor uv, torch::Tensor grad,
+Tensor sample(Tensor texture, Tensor uv, int64_t kind, const ReadOptions& opts);
+std::tuple<Tensor, Tensor> sample_backward(Tensor texture, Tensor uv, Tensor grad,
                                                          int64_t kind, const ReadOptions& opts, bool need_texture,
                                                          bool need_uv);
 // Whether float32 reads (single.cpp's bilinear / bicubic, taps.cpp's one

@@ -95,10 +95,10 @@ DT_INLINE double ewa_sums(const EwaSetup& q, const Level& lv, const scalar_t* p,
   return den;
 }
 
-void ewa_checks(const torch::Tensor& uv, const torch::Tensor& sigma, const torch::Tensor& minor,
-                const torch::Tensor& scale) {
+void ewa_checks(const Tensor& uv, const Tensor& sigma, const Tensor& minor,
+                const Tensor& scale) {
   const int64_t M = uv.size(0);
-  TORCH_CHECK(sigma.dim() == 2 && sigma.size(0) == M && sigma.size(1) == 3 && sigma.is_contiguous() &&
+  DT_CHECK(sigma.dim() == 2 && sigma.size(0) == M && sigma.size(1) == 3 && sigma.is_contiguous() &&
                   minor.dim() == 1 && minor.size(0) == M && minor.is_contiguous() && scale.dim() == 1 &&
                   scale.size(0) == M && scale.is_contiguous() && sigma.scalar_type() == uv.scalar_type() &&
                   minor.scalar_type() == uv.scalar_type() && scale.scalar_type() == uv.scalar_type(),
@@ -108,23 +108,23 @@ void ewa_checks(const torch::Tensor& uv, const torch::Tensor& sigma, const torch
 }  // namespace
 
 // Forward: [C, M]. opts.nearest must be false (EWA blends two levels).
-torch::Tensor ewa(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor sigma, torch::Tensor minor,
-                  torch::Tensor scale, torch::Tensor D, int64_t full_h, int64_t full_w, const ReadOptions& opts) {
-  TORCH_CHECK(!opts.nearest, "mip_read.ewa: nearest-mip is not an EWA option");
+Tensor ewa(std::vector<Tensor> levels, Tensor uv, Tensor sigma, Tensor minor,
+                  Tensor scale, Tensor D, int64_t full_h, int64_t full_w, const ReadOptions& opts) {
+  DT_CHECK(!opts.nearest, "mip_read.ewa: nearest-mip is not an EWA option");
   const int64_t wrap_u = opts.wrap_u, wrap_v = opts.wrap_v;
   const double border = opts.border;
   const bool d_grad = opts.d_grad;
-  auto L = shapes(levels, uv, D, torch::empty({0}, uv.options()), torch::empty({0}, uv.options().dtype(torch::kInt64)));
+  auto L = shapes(levels, uv, D, empty({0}, options_of(uv)), empty({0}, options_of(uv).dtype(kInt64)));
   ewa_checks(uv, sigma, minor, scale);
   const int64_t K = static_cast<int64_t>(L.size()), C = levels[0].size(0), M = uv.size(0);
-  auto out = torch::empty({C, M}, uv.options());
-  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_ewa", [&] {
+  auto out = empty({C, M}, options_of(uv));
+  DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_ewa", [&] {
     std::vector<const scalar_t*> lp;
-    for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
-    const scalar_t *puv = uv.data_ptr<scalar_t>(), *ps = sigma.data_ptr<scalar_t>();
-    const scalar_t *pm = minor.data_ptr<scalar_t>(), *psc = scale.data_ptr<scalar_t>(), *pd = D.data_ptr<scalar_t>();
-    scalar_t* po = out.data_ptr<scalar_t>();
-    at::parallel_for(0, M, 256, [&](int64_t lo, int64_t hi) {
+    for (const auto& t : levels) lp.push_back(t.mutable_data_ptr<scalar_t>());
+    const scalar_t *puv = uv.mutable_data_ptr<scalar_t>(), *ps = sigma.mutable_data_ptr<scalar_t>();
+    const scalar_t *pm = minor.mutable_data_ptr<scalar_t>(), *psc = scale.mutable_data_ptr<scalar_t>(), *pd = D.mutable_data_ptr<scalar_t>();
+    scalar_t* po = out.mutable_data_ptr<scalar_t>();
+    parallel_for(0, M, 256, [&](int64_t lo, int64_t hi) {
       std::vector<double> num(C), acc(C);
       for (int64_t e = lo; e < hi; ++e) {
         Reads r = reads_of(static_cast<double>(pd[e]), K, false, d_grad);
@@ -148,39 +148,39 @@ torch::Tensor ewa(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Te
 // needed; uv [M, 2]; sigma [M, 3]; minor [M]; scale [M]; D [M]); each
 // undefined where not needed. The points are split into up to 4 chunks run
 // in parallel, each scattering its texture gradient into its own buffers.
-std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor>
-ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor sigma, torch::Tensor minor,
-             torch::Tensor scale, torch::Tensor D, torch::Tensor grad, int64_t full_h, int64_t full_w,
+std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor, Tensor, Tensor>
+ewa_backward(std::vector<Tensor> levels, Tensor uv, Tensor sigma, Tensor minor,
+             Tensor scale, Tensor D, Tensor grad, int64_t full_h, int64_t full_w,
              const ReadOptions& opts, const EwaNeeds& need) {
-  TORCH_CHECK(!opts.nearest, "mip_read.ewa_backward: nearest-mip is not an EWA option");
+  DT_CHECK(!opts.nearest, "mip_read.ewa_backward: nearest-mip is not an EWA option");
   const int64_t wrap_u = opts.wrap_u, wrap_v = opts.wrap_v;
   const double border = opts.border;
   const bool d_grad = opts.d_grad;
   const bool need_levels = need.levels, need_uv = need.uv, need_ellipse = need.ellipse, need_D = need.D;
-  auto L = shapes(levels, uv, D, torch::empty({0}, uv.options()), torch::empty({0}, uv.options().dtype(torch::kInt64)));
+  auto L = shapes(levels, uv, D, empty({0}, options_of(uv)), empty({0}, options_of(uv).dtype(kInt64)));
   ewa_checks(uv, sigma, minor, scale);
   const int64_t K = static_cast<int64_t>(L.size()), C = levels[0].size(0), M = uv.size(0);
-  grad = grad.contiguous();
-  TORCH_CHECK(grad.dim() == 2 && grad.size(0) == C && grad.size(1) == M && grad.scalar_type() == uv.scalar_type(),
+  grad = contig(grad);
+  DT_CHECK(grad.dim() == 2 && grad.size(0) == C && grad.size(1) == M && grad.scalar_type() == uv.scalar_type(),
               "mip_read.ewa_backward: grad must be [C, M] of uv's dtype");
-  std::vector<torch::Tensor> gl(K);
-  auto opt = uv.options();
-  torch::Tensor guv = need_uv ? torch::zeros({M, 2}, opt) : torch::Tensor();
-  torch::Tensor gsig = need_ellipse ? torch::zeros({M, 3}, opt) : torch::Tensor();
-  torch::Tensor gmin = need_ellipse ? torch::zeros({M}, opt) : torch::Tensor();
-  torch::Tensor gsc = need_ellipse ? torch::zeros({M}, opt) : torch::Tensor();
-  torch::Tensor gD = need_D ? torch::zeros({M}, opt) : torch::Tensor();
-  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_ewa_backward", [&] {
+  std::vector<Tensor> gl(K);
+  auto opt = options_of(uv);
+  Tensor guv = need_uv ? zeros({M, 2}, opt) : Tensor();
+  Tensor gsig = need_ellipse ? zeros({M, 3}, opt) : Tensor();
+  Tensor gmin = need_ellipse ? zeros({M}, opt) : Tensor();
+  Tensor gsc = need_ellipse ? zeros({M}, opt) : Tensor();
+  Tensor gD = need_D ? zeros({M}, opt) : Tensor();
+  DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_ewa_backward", [&] {
     std::vector<const scalar_t*> lp;
-    for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
-    const scalar_t *puv = uv.data_ptr<scalar_t>(), *ps = sigma.data_ptr<scalar_t>();
-    const scalar_t *pm = minor.data_ptr<scalar_t>(), *psc = scale.data_ptr<scalar_t>(), *pd = D.data_ptr<scalar_t>();
-    const scalar_t* pg = grad.data_ptr<scalar_t>();
-    scalar_t* o_uv = need_uv ? guv.data_ptr<scalar_t>() : nullptr;
-    scalar_t* o_sig = need_ellipse ? gsig.data_ptr<scalar_t>() : nullptr;
-    scalar_t* o_min = need_ellipse ? gmin.data_ptr<scalar_t>() : nullptr;
-    scalar_t* o_sc = need_ellipse ? gsc.data_ptr<scalar_t>() : nullptr;
-    scalar_t* o_D = need_D ? gD.data_ptr<scalar_t>() : nullptr;
+    for (const auto& t : levels) lp.push_back(t.mutable_data_ptr<scalar_t>());
+    const scalar_t *puv = uv.mutable_data_ptr<scalar_t>(), *ps = sigma.mutable_data_ptr<scalar_t>();
+    const scalar_t *pm = minor.mutable_data_ptr<scalar_t>(), *psc = scale.mutable_data_ptr<scalar_t>(), *pd = D.mutable_data_ptr<scalar_t>();
+    const scalar_t* pg = grad.mutable_data_ptr<scalar_t>();
+    scalar_t* o_uv = need_uv ? guv.mutable_data_ptr<scalar_t>() : nullptr;
+    scalar_t* o_sig = need_ellipse ? gsig.mutable_data_ptr<scalar_t>() : nullptr;
+    scalar_t* o_min = need_ellipse ? gmin.mutable_data_ptr<scalar_t>() : nullptr;
+    scalar_t* o_sc = need_ellipse ? gsc.mutable_data_ptr<scalar_t>() : nullptr;
+    scalar_t* o_D = need_D ? gD.mutable_data_ptr<scalar_t>() : nullptr;
     // Points [lo, hi) scattering their texture gradient into gp (one
     // buffer set per chunk of points, so that chunks run in parallel).
     auto run = [&](int64_t lo, int64_t hi, const std::vector<scalar_t*>& gp) {
@@ -262,24 +262,29 @@ ewa_backward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor 
       Reads r = reads_of(static_cast<double>(pd[e]), K, false, d_grad);
       for (int j = 0; j < r.n; ++j) read[r.k[j]] = true;
     }
-    const int64_t chunks = std::max<int64_t>(1, std::min<int64_t>({static_cast<int64_t>(at::get_num_threads()),
+    const int64_t chunks = std::max<int64_t>(1, std::min<int64_t>({static_cast<int64_t>(get_num_threads()),
                                                                     4, M / 4096}));
-    std::vector<std::vector<torch::Tensor>> bufs(chunks, std::vector<torch::Tensor>(K));
+    std::vector<std::vector<Tensor>> bufs(chunks, std::vector<Tensor>(K));
     std::vector<std::vector<scalar_t*>> ptrs(chunks, std::vector<scalar_t*>(K, nullptr));
     if (need_levels)
       for (int64_t c = 0; c < chunks; ++c)
         for (int64_t k = 0; k < K; ++k)
           if (read[k]) {
-            bufs[c][k] = torch::zeros_like(levels[k]);
-            ptrs[c][k] = bufs[c][k].template data_ptr<scalar_t>();
+            bufs[c][k] = zeros_like(levels[k]);
+            ptrs[c][k] = bufs[c][k].template mutable_data_ptr<scalar_t>();
           }
-    at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+    parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
       for (int64_t c = c0; c < c1; ++c) run(c * M / chunks, (c + 1) * M / chunks, ptrs[c]);
     });
     if (need_levels)
       for (int64_t k = 0; k < K; ++k) {
         if (!read[k]) continue;
-        for (int64_t c = 1; c < chunks; ++c) bufs[0][k].add_(bufs[c][k]);
+        scalar_t* acc = bufs[0][k].template mutable_data_ptr<scalar_t>();
+        const int64_t n = bufs[0][k].numel();
+        for (int64_t c = 1; c < chunks; ++c) {
+          const scalar_t* part = bufs[c][k].template const_data_ptr<scalar_t>();
+          for (int64_t i = 0; i < n; ++i) acc[i] += part[i];
+        }
         gl[k] = bufs[0][k];
       }
   });

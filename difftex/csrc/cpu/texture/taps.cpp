@@ -21,22 +21,22 @@
 
 namespace difftex {
 
-std::vector<Level> shapes(const std::vector<torch::Tensor>& levels, const torch::Tensor& uv, const torch::Tensor& D,
-                          const torch::Tensor& axis, const torch::Tensor& count) {
-  TORCH_CHECK(!levels.empty(), "mip_read: no levels");
+std::vector<Level> shapes(const std::vector<Tensor>& levels, const Tensor& uv, const Tensor& D,
+                          const Tensor& axis, const Tensor& count) {
+  DT_CHECK(!levels.empty(), "mip_read: no levels");
   const int64_t M = uv.size(0);
-  TORCH_CHECK(uv.dim() == 2 && uv.size(1) == 2 && uv.is_contiguous(), "mip_read: uv must be contiguous [M, 2]");
-  TORCH_CHECK(D.dim() == 1 && D.size(0) == M && D.scalar_type() == uv.scalar_type() && D.is_contiguous(),
+  DT_CHECK(uv.dim() == 2 && uv.size(1) == 2 && uv.is_contiguous(), "mip_read: uv must be contiguous [M, 2]");
+  DT_CHECK(D.dim() == 1 && D.size(0) == M && D.scalar_type() == uv.scalar_type() && D.is_contiguous(),
               "mip_read: D must be contiguous [M] of uv's dtype");
-  TORCH_CHECK(count.numel() == 0 || (count.dim() == 1 && count.size(0) == M && count.is_contiguous() &&
-                                     count.scalar_type() == torch::kInt64 && axis.sizes() == uv.sizes() &&
+  DT_CHECK(count.numel() == 0 || (count.dim() == 1 && count.size(0) == M && count.is_contiguous() &&
+                                     count.scalar_type() == kInt64 && axis.sizes() == uv.sizes() &&
                                      axis.is_contiguous() && axis.scalar_type() == uv.scalar_type()),
               "mip_read: count must be contiguous int64 [M] and axis contiguous [M, 2] (or both empty)");
   std::vector<Level> out;
   int64_t C = levels[0].size(0);
   for (const auto& t : levels) {
-    TORCH_CHECK(t.dim() == 3 && t.size(0) == C && t.is_contiguous() && t.scalar_type() == uv.scalar_type() &&
-                    t.device().is_cpu(), "mip_read: levels must be contiguous CPU [C, h, w] of uv's dtype");
+    DT_CHECK(t.dim() == 3 && t.size(0) == C && t.is_contiguous() && t.scalar_type() == uv.scalar_type() &&
+                    t.is_cpu(), "mip_read: levels must be contiguous CPU [C, h, w] of uv's dtype");
     out.push_back({t.size(1), t.size(2), t.size(1) * t.size(2)});
   }
   return out;
@@ -513,38 +513,38 @@ __attribute__((target("avx2,fma"))) void forward_taps_avx2(int64_t lo, int64_t h
 #endif
 
 // Whether float32 reads of these levels can take the eight-point paths (on, float32, int32 texel offsets).
-bool simd_levels(const torch::Tensor& uv, const std::vector<torch::Tensor>& levels) {
-  if (!(simd_on() && uv.scalar_type() == torch::kFloat32)) return false;
+bool simd_levels(const Tensor& uv, const std::vector<Tensor>& levels) {
+  if (!(simd_on() && uv.scalar_type() == kFloat32)) return false;
   for (const auto& t : levels)
     if (t.size(1) * t.size(2) >= (int64_t(1) << 31)) return false;
   return true;
 }
 
 // Whether a one-tap read (no counts) goes through the eight-point path.
-bool simd_taps(const torch::Tensor& uv, const torch::Tensor& count, const std::vector<torch::Tensor>& levels) {
+bool simd_taps(const Tensor& uv, const Tensor& count, const std::vector<Tensor>& levels) {
   return count.numel() == 0 && simd_levels(uv, levels);
 }
 
 }  // namespace
 
-torch::Tensor forward(std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor D, torch::Tensor axis,
-                      torch::Tensor count, const ReadOptions& opts) {
+Tensor forward(std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis,
+                      Tensor count, const ReadOptions& opts) {
   const int64_t wrap_u = opts.wrap_u, wrap_v = opts.wrap_v;
   const double border = opts.border;
   const bool nearest = opts.nearest, d_grad = opts.d_grad;
   auto L = shapes(levels, uv, D, axis, count);
   const int64_t C = levels[0].size(0), M = uv.size(0);
-  auto out = torch::empty({C, M}, uv.options());
+  auto out = empty({C, M}, options_of(uv));
   const bool simd = simd_taps(uv, count, levels), simd_n = simd_levels(uv, levels) && count.numel() != 0;
-  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_forward", [&] {
+  DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_forward", [&] {
     std::vector<const scalar_t*> lp;
-    for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
-    const scalar_t* puv = uv.data_ptr<scalar_t>();
-    const scalar_t* pd = D.data_ptr<scalar_t>();
-    const int64_t* pc = count.numel() ? count.data_ptr<int64_t>() : nullptr;
-    const scalar_t* pa = pc ? axis.data_ptr<scalar_t>() : nullptr;
-    scalar_t* po = out.data_ptr<scalar_t>();
-    at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
+    for (const auto& t : levels) lp.push_back(t.mutable_data_ptr<scalar_t>());
+    const scalar_t* puv = uv.mutable_data_ptr<scalar_t>();
+    const scalar_t* pd = D.mutable_data_ptr<scalar_t>();
+    const int64_t* pc = count.numel() ? count.mutable_data_ptr<int64_t>() : nullptr;
+    const scalar_t* pa = pc ? axis.mutable_data_ptr<scalar_t>() : nullptr;
+    scalar_t* po = out.mutable_data_ptr<scalar_t>();
+    parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
       specialized(C, wrap_u, wrap_v, [&](auto cc, auto border_) {
         constexpr int CC = decltype(cc)::value;
         constexpr bool kB = decltype(border_)::value;
@@ -698,7 +698,9 @@ DT_INLINE int32_t tap_key(const ScaleBands& T, const std::vector<Level>& L, cons
     const double period = wrap_v == REPEAT ? 1.0 : 2.0;
     if (!(hi - lo < period)) return static_cast<int32_t>(T.serial);
     if (wrap_v == REPEAT) {
-      const double s = floor_capped(v);
+      // Whole periods off exactly: std::floor is exact for every finite double, where floor_capped stops at
+      // 2^52 and would leave |v| >= 2^52 in lo / hi (rows ~2^52, outside floor_div's |a| < 2^50).
+      const double s = std::floor(v);
       lo -= s;
       hi -= s;
     }
@@ -712,9 +714,9 @@ DT_INLINE int32_t tap_key(const ScaleBands& T, const std::vector<Level>& L, cons
     bool fits = true;
     for (int j = 0; j < r.n; ++j) fits = fits && (b[j] + 1) * nb <= (band + 2) * L[r.k[j]].h;
     if (fits) {
-      // band mod nb: band is within a few periods of [0, nb) (unwrapped repeat rows), so steps beat a division
-      while (band < 0) band += nb;
-      while (band >= nb) band -= nb;
+      // band mod nb in one step whatever band is (nb is a power of two, band_count; the mask is the
+      // non-negative remainder of a negative band too): no loop whose trip count grows with v (issue 42).
+      band &= nb - 1;
       return static_cast<int32_t>(T.offset[s] + band);
     }
   }
@@ -1164,9 +1166,9 @@ __attribute__((target("avx2,fma"))) void tap_keys4(int64_t lo, int64_t hi, const
 
 }  // namespace
 
-std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tensor> backward(
-    std::vector<torch::Tensor> levels, torch::Tensor uv, torch::Tensor D, torch::Tensor axis, torch::Tensor count,
-    torch::Tensor grad, const ReadOptions& opts, const TapNeeds& need) {
+std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
+    std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis, Tensor count,
+    Tensor grad, const ReadOptions& opts, const TapNeeds& need) {
   const int64_t wrap_u = opts.wrap_u, wrap_v = opts.wrap_v;
   const double border = opts.border;
   const bool nearest = opts.nearest, d_grad = opts.d_grad;
@@ -1177,26 +1179,26 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
   // Any strides: a channels-last output gradient (nvdiffrast's NHWC) is a
   // [C, M] view with strides (1, C), and transposing it costs more than
   // reading it in place.
-  TORCH_CHECK(grad.dim() == 2 && grad.size(0) == C && grad.size(1) == M && grad.scalar_type() == uv.scalar_type(),
+  DT_CHECK(grad.dim() == 2 && grad.size(0) == C && grad.size(1) == M && grad.scalar_type() == uv.scalar_type(),
               "mip_read: grad must be [C, M] of uv's dtype");
   const int64_t gsc = grad.stride(0), gsm = grad.stride(1);
   need_axis = need_axis && count.numel();
-  std::vector<torch::Tensor> gl(K);
-  torch::Tensor guv = need_uv ? torch::zeros({M, 2}, uv.options()) : torch::Tensor();
-  torch::Tensor gD = need_D ? torch::zeros({M}, uv.options()) : torch::Tensor();
-  torch::Tensor gax = need_axis ? torch::zeros({M, 2}, uv.options()) : torch::Tensor();
+  std::vector<Tensor> gl(K);
+  Tensor guv = need_uv ? zeros({M, 2}, options_of(uv)) : Tensor();
+  Tensor gD = need_D ? zeros({M}, options_of(uv)) : Tensor();
+  Tensor gax = need_axis ? zeros({M, 2}, options_of(uv)) : Tensor();
   const bool simd = simd_taps(uv, count, levels), simd_n = simd_levels(uv, levels) && count.numel() != 0;
-  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_backward", [&] {
+  DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_backward", [&] {
     std::vector<const scalar_t*> lp;
-    for (const auto& t : levels) lp.push_back(t.data_ptr<scalar_t>());
+    for (const auto& t : levels) lp.push_back(t.mutable_data_ptr<scalar_t>());
     Grads<scalar_t> out;
     out.gp.assign(K, nullptr);
-    out.uv = need_uv ? guv.data_ptr<scalar_t>() : nullptr;
-    out.D = need_D ? gD.data_ptr<scalar_t>() : nullptr;
-    out.axis = need_axis ? gax.data_ptr<scalar_t>() : nullptr;
-    const int64_t* pc = count.numel() ? count.data_ptr<int64_t>() : nullptr;
-    const scalar_t* pa = pc ? axis.data_ptr<scalar_t>() : nullptr;
-    const scalar_t *puv = uv.data_ptr<scalar_t>(), *pd = D.data_ptr<scalar_t>(), *pg = grad.data_ptr<scalar_t>();
+    out.uv = need_uv ? guv.mutable_data_ptr<scalar_t>() : nullptr;
+    out.D = need_D ? gD.mutable_data_ptr<scalar_t>() : nullptr;
+    out.axis = need_axis ? gax.mutable_data_ptr<scalar_t>() : nullptr;
+    const int64_t* pc = count.numel() ? count.mutable_data_ptr<int64_t>() : nullptr;
+    const scalar_t* pa = pc ? axis.mutable_data_ptr<scalar_t>() : nullptr;
+    const scalar_t *puv = uv.mutable_data_ptr<scalar_t>(), *pd = D.mutable_data_ptr<scalar_t>(), *pg = grad.mutable_data_ptr<scalar_t>();
     std::vector<int32_t> keys;
     ScaleBands bands;
     if (need_levels) {
@@ -1229,8 +1231,8 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
       if (read.empty()) read = band_keys(M, K, keys, key_of);
       for (int64_t k = 0; k < K; ++k) {
         if (!read[k]) continue;
-        gl[k] = torch::zeros_like(levels[k]);
-        out.gp[k] = gl[k].template data_ptr<scalar_t>();
+        gl[k] = zeros_like(levels[k]);
+        out.gp[k] = gl[k].template mutable_data_ptr<scalar_t>();
       }
     }
     specialized(C, wrap_u, wrap_v, [&](auto cc, auto border_) {
@@ -1260,7 +1262,7 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
       if (need_levels) {
         run_banded(keys.data(), M, bands.classes, run);
       } else {  // no scatter: the points are independent
-        at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
+        parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
           std::vector<int64_t> idx(hi - lo);
           for (int64_t e = lo; e < hi; ++e) idx[e - lo] = e;
           run(idx.data(), hi - lo);

@@ -23,7 +23,7 @@
 //   gives NaN and no gradient.
 #pragma once
 
-#include <torch/extension.h>
+#include "stable.h"
 
 #include <algorithm>
 #include <atomic>
@@ -245,8 +245,8 @@ DT_INLINE bool wrap_int(int64_t i, int64_t n, int mode, int64_t* out) {
 
 // The levels' sizes, after checking levels [C, h, w], uv [M, 2], D [M],
 // axis [M, 2] and count [M] (both empty for one tap a point); taps.cpp.
-std::vector<Level> shapes(const std::vector<torch::Tensor>& levels, const torch::Tensor& uv, const torch::Tensor& D,
-                          const torch::Tensor& axis, const torch::Tensor& count);
+std::vector<Level> shapes(const std::vector<Tensor>& levels, const Tensor& uv, const Tensor& D,
+                          const Tensor& axis, const Tensor& count);
 
 // Runs f(std::integral_constant<int, CC>, std::bool_constant<kBorder>) for
 // the channel count (1, 3, 4 fixed at compile time, others at run time)

@@ -22,7 +22,7 @@
 #include "boxes.h"
 #include "common.h"
 
-#include <ATen/Parallel.h>
+#include "stable.h"
 
 #include <array>
 
@@ -85,14 +85,14 @@ Halving halving(int64_t n) {
 
 // One halving of x [C, h, w] along the width (axis 1) or the height (axis 0).
 template <typename scalar_t>
-torch::Tensor halve(const torch::Tensor& x, int axis) {
+Tensor halve(const Tensor& x, int axis) {
   const int64_t C = x.size(0), h = x.size(1), w = x.size(2);
   const Halving hv = halving(axis == 1 ? w : h);
   const int64_t oh = axis == 1 ? h : hv.m, ow = axis == 1 ? hv.m : w;
-  auto out = torch::empty({C, oh, ow}, x.options());
-  const scalar_t* px = x.data_ptr<scalar_t>();
-  scalar_t* po = out.data_ptr<scalar_t>();
-  at::parallel_for(0, C * oh, 16, [&](int64_t lo, int64_t hi) {
+  auto out = empty({C, oh, ow}, options_of(x));
+  const scalar_t* px = x.mutable_data_ptr<scalar_t>();
+  scalar_t* po = out.mutable_data_ptr<scalar_t>();
+  parallel_for(0, C * oh, 16, [&](int64_t lo, int64_t hi) {
     for (int64_t r = lo; r < hi; ++r) {
       const int64_t c = r / oh, y = r % oh;
       scalar_t* o = po + r * ow;
@@ -130,13 +130,13 @@ torch::Tensor halve(const torch::Tensor& x, int axis) {
 // fine [C, h, w] += the transpose of halve(., axis) applied to coarse; with assign, fine = it (no zero-filled
 // buffer to add into where a level on the way has no gradient of its own).
 template <typename scalar_t>
-void halve_adjoint(torch::Tensor& fine, const torch::Tensor& coarse, int axis, bool assign) {
+void halve_adjoint(Tensor& fine, const Tensor& coarse, int axis, bool assign) {
   const int64_t C = fine.size(0), h = fine.size(1), w = fine.size(2);
   const Halving hv = halving(axis == 1 ? w : h);
   const int64_t ch = coarse.size(1), cw = coarse.size(2);
-  scalar_t* pf = fine.data_ptr<scalar_t>();
-  const scalar_t* pc = coarse.data_ptr<scalar_t>();
-  at::parallel_for(0, C * h, 16, [&](int64_t lo, int64_t hi) {
+  scalar_t* pf = fine.mutable_data_ptr<scalar_t>();
+  const scalar_t* pc = coarse.mutable_data_ptr<scalar_t>();
+  parallel_for(0, C * h, 16, [&](int64_t lo, int64_t hi) {
     for (int64_t r = lo; r < hi; ++r) {
       const int64_t c = r / h, y = r % h;
       scalar_t* f = pf + r * w;
@@ -171,7 +171,7 @@ void halve_adjoint(torch::Tensor& fine, const torch::Tensor& coarse, int axis, b
   });
 }
 
-bool present(const torch::Tensor& t) { return t.defined() && t.numel() > 0; }
+bool present(const Tensor& t) { return t.defined() && t.numel() > 0; }
 
 struct Shapes {
   int64_t C, n_u, n_v;
@@ -179,18 +179,18 @@ struct Shapes {
   std::vector<const void*> ptr;
 };
 
-Shapes check_levels(const std::vector<torch::Tensor>& levels, int64_t n_u, const torch::Tensor& uv,
-                    const torch::Tensor& Du, const torch::Tensor& Dv) {
+Shapes check_levels(const std::vector<Tensor>& levels, int64_t n_u, const Tensor& uv,
+                    const Tensor& Du, const Tensor& Dv) {
   Shapes s;
-  TORCH_CHECK(n_u >= 1 && !levels.empty() && static_cast<int64_t>(levels.size()) % n_u == 0,
+  DT_CHECK(n_u >= 1 && !levels.empty() && static_cast<int64_t>(levels.size()) % n_u == 0,
               "ripmap_read: expected n_u * n_v levels");
   s.n_u = n_u;
   s.n_v = static_cast<int64_t>(levels.size()) / n_u;
   const int64_t M = uv.size(0);
-  TORCH_CHECK(uv.dim() == 2 && uv.size(1) == 2 && uv.is_contiguous() && uv.device().is_cpu(),
+  DT_CHECK(uv.dim() == 2 && uv.size(1) == 2 && uv.is_contiguous() && uv.is_cpu(),
               "ripmap_read: uv must be contiguous CPU [M, 2]");
   for (const auto* d : {&Du, &Dv})
-    TORCH_CHECK(d->dim() == 1 && d->size(0) == M && d->is_contiguous() && d->scalar_type() == uv.scalar_type(),
+    DT_CHECK(d->dim() == 1 && d->size(0) == M && d->is_contiguous() && d->scalar_type() == uv.scalar_type(),
                 "ripmap_read: Du, Dv must be contiguous [M] of uv's dtype");
   s.C = -1;
   for (const auto& t : levels) {
@@ -199,14 +199,14 @@ Shapes check_levels(const std::vector<torch::Tensor>& levels, int64_t n_u, const
       s.ptr.push_back(nullptr);
       continue;
     }
-    TORCH_CHECK(t.dim() == 3 && t.is_contiguous() && t.scalar_type() == uv.scalar_type() && t.device().is_cpu() &&
+    DT_CHECK(t.dim() == 3 && t.is_contiguous() && t.scalar_type() == uv.scalar_type() && t.is_cpu() &&
                     (s.C < 0 || t.size(0) == s.C),
                 "ripmap_read: levels must be contiguous CPU [C, h, w] of uv's dtype");
     s.C = t.size(0);
     s.L.push_back({t.size(1), t.size(2), t.size(1) * t.size(2)});
     s.ptr.push_back(t.data_ptr());
   }
-  TORCH_CHECK(s.C > 0, "ripmap_read: no level given");
+  DT_CHECK(s.C > 0, "ripmap_read: no level given");
   return s;
 }
 
@@ -234,22 +234,22 @@ DT_INLINE Quad quad_of(double Du, double Dv, const Shapes& s, bool d_grad) {
 
 }  // namespace
 
-std::vector<torch::Tensor> ripmap_build(torch::Tensor texture, int64_t n_u, int64_t n_v, std::vector<bool> wanted) {
-  TORCH_CHECK(texture.dim() == 3 && texture.device().is_cpu(), "ripmap_build: texture must be CPU [C, H, W]");
-  TORCH_CHECK(n_u >= 1 && n_v >= 1 && static_cast<int64_t>(wanted.size()) == n_u * n_v,
+std::vector<Tensor> ripmap_build(Tensor texture, int64_t n_u, int64_t n_v, std::vector<bool> wanted) {
+  DT_CHECK(texture.dim() == 3 && texture.is_cpu(), "ripmap_build: texture must be CPU [C, H, W]");
+  DT_CHECK(n_u >= 1 && n_v >= 1 && static_cast<int64_t>(wanted.size()) == n_u * n_v,
               "ripmap_build: wanted must hold n_u * n_v flags");
-  std::vector<torch::Tensor> out(n_u * n_v);
+  std::vector<Tensor> out(n_u * n_v);
   std::vector<int64_t> last(n_v, -1);  // the last level wanted in each row
   int64_t top = -1;
   for (int64_t j = 0; j < n_v; ++j)
     for (int64_t i = 0; i < n_u; ++i)
       if (wanted[j * n_u + i]) last[j] = i, top = j;
   if (top < 0) return out;
-  AT_DISPATCH_FLOATING_TYPES(texture.scalar_type(), "ripmap_build", [&] {
-    torch::Tensor first = texture.contiguous();
+  DT_DISPATCH_FLOATING_TYPES(texture.scalar_type(), "ripmap_build", [&] {
+    Tensor first = contig(texture);
     for (int64_t j = 0; j <= top; ++j) {
       if (j > 0) first = halve<scalar_t>(first, 0);
-      torch::Tensor x = first;
+      Tensor x = first;
       if (last[j] >= 0) out[j * n_u] = x;
       for (int64_t i = 1; i <= last[j]; ++i) {
         x = halve<scalar_t>(x, 1);
@@ -260,35 +260,35 @@ std::vector<torch::Tensor> ripmap_build(torch::Tensor texture, int64_t n_u, int6
   return out;
 }
 
-torch::Tensor ripmap_adjoint(std::vector<torch::Tensor> grads, int64_t n_u, int64_t n_v, int64_t H, int64_t W) {
-  TORCH_CHECK(static_cast<int64_t>(grads.size()) == n_u * n_v, "ripmap_adjoint: expected n_u * n_v gradients");
+Tensor ripmap_adjoint(std::vector<Tensor> grads, int64_t n_u, int64_t n_v, int64_t H, int64_t W) {
+  DT_CHECK(static_cast<int64_t>(grads.size()) == n_u * n_v, "ripmap_adjoint: expected n_u * n_v gradients");
   auto size_of = [&](int64_t i, int64_t j) {
     return std::pair<int64_t, int64_t>{(H + (int64_t{1} << j) - 1) >> j, (W + (int64_t{1} << i) - 1) >> i};
   };
-  torch::Tensor any;
+  Tensor any;
   for (const auto& g : grads)
     if (present(g)) any = g;
-  TORCH_CHECK(any.defined(), "ripmap_adjoint: no gradient given");
+  DT_CHECK(any.defined(), "ripmap_adjoint: no gradient given");
   const int64_t C = any.size(0);
-  torch::Tensor col;  // the running total of the column level (0, j + 1)
-  AT_DISPATCH_FLOATING_TYPES(any.scalar_type(), "ripmap_adjoint", [&] {
+  Tensor col;  // the running total of the column level (0, j + 1)
+  DT_DISPATCH_FLOATING_TYPES(any.scalar_type(), "ripmap_adjoint", [&] {
     for (int64_t j = n_v - 1; j >= 0; --j) {
       // Row j, right to left, into (0, j).
-      torch::Tensor acc;
+      Tensor acc;
       for (int64_t i = n_u - 1; i >= 0; --i) {
-        const torch::Tensor& g = grads[j * n_u + i];
+        const Tensor& g = grads[j * n_u + i];
         if (acc.defined()) {
           auto [h, w] = size_of(i, j);
-          torch::Tensor fine = present(g) ? g.contiguous() : torch::empty({C, h, w}, any.options());
+          Tensor fine = present(g) ? contig(g) : empty({C, h, w}, options_of(any));
           halve_adjoint<scalar_t>(fine, acc, 1, !present(g));
           acc = fine;
         } else if (present(g)) {
-          acc = g.contiguous();
+          acc = contig(g);
         }
       }
       if (col.defined()) {
         auto [h, w] = size_of(0, j);
-        torch::Tensor fine = acc.defined() ? acc : torch::empty({C, h, w}, any.options());
+        Tensor fine = acc.defined() ? acc : empty({C, h, w}, options_of(any));
         halve_adjoint<scalar_t>(fine, col, 0, !acc.defined());
         col = fine;
       } else if (acc.defined()) {
@@ -299,16 +299,16 @@ torch::Tensor ripmap_adjoint(std::vector<torch::Tensor> grads, int64_t n_u, int6
   return col;
 }
 
-torch::Tensor ripmap_read(std::vector<torch::Tensor> levels, int64_t n_u, torch::Tensor uv, torch::Tensor Du,
-                          torch::Tensor Dv, const ReadOptions& opts) {
+Tensor ripmap_read(std::vector<Tensor> levels, int64_t n_u, Tensor uv, Tensor Du,
+                          Tensor Dv, const ReadOptions& opts) {
   const Shapes s = check_levels(levels, n_u, uv, Du, Dv);
   const int64_t C = s.C, M = uv.size(0), wrap_u = opts.wrap_u, wrap_v = opts.wrap_v;
-  auto out = torch::empty({C, M}, uv.options());
-  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "ripmap_read", [&] {
-    const scalar_t *puv = uv.data_ptr<scalar_t>(), *pu = Du.data_ptr<scalar_t>(), *pv = Dv.data_ptr<scalar_t>();
-    scalar_t* po = out.data_ptr<scalar_t>();
+  auto out = empty({C, M}, options_of(uv));
+  DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "ripmap_read", [&] {
+    const scalar_t *puv = uv.mutable_data_ptr<scalar_t>(), *pu = Du.mutable_data_ptr<scalar_t>(), *pv = Dv.mutable_data_ptr<scalar_t>();
+    scalar_t* po = out.mutable_data_ptr<scalar_t>();
     const scalar_t bv = static_cast<scalar_t>(opts.border);
-    at::parallel_for(0, M, 512, [&](int64_t lo, int64_t hi) {
+    parallel_for(0, M, 512, [&](int64_t lo, int64_t hi) {
       std::vector<double> acc(C);
       for (int64_t e = lo; e < hi; ++e) {
         const double u = puv[2 * e], v = puv[2 * e + 1];
@@ -321,7 +321,7 @@ torch::Tensor ripmap_read(std::vector<torch::Tensor> levels, int64_t n_u, torch:
         std::fill(acc.begin(), acc.end(), 0.0);
         for (int t = 0; t < q.n; ++t) {
           const Level& lv = s.L[q.lv[t]];
-          TORCH_CHECK(lv.h > 0, "ripmap_read: a point reads a level that was not given");
+          DT_CHECK(lv.h > 0, "ripmap_read: a point reads a level that was not given");
           const Bilinear b = taps_folded(fu, fv, lv.h, lv.w, static_cast<int>(wrap_u), static_cast<int>(wrap_v));
           const scalar_t wl = static_cast<scalar_t>(q.w[t]);
           const scalar_t wts[4] = {static_cast<scalar_t>((1 - b.fx) * (1 - b.fy)),
@@ -342,28 +342,28 @@ torch::Tensor ripmap_read(std::vector<torch::Tensor> levels, int64_t n_u, torch:
   return out;
 }
 
-std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tensor> ripmap_read_backward(
-    std::vector<torch::Tensor> levels, int64_t n_u, torch::Tensor uv, torch::Tensor Du, torch::Tensor Dv,
-    torch::Tensor grad, const ReadOptions& opts, bool need_levels, bool need_uv, bool need_D) {
+std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> ripmap_read_backward(
+    std::vector<Tensor> levels, int64_t n_u, Tensor uv, Tensor Du, Tensor Dv,
+    Tensor grad, const ReadOptions& opts, bool need_levels, bool need_uv, bool need_D) {
   const Shapes s = check_levels(levels, n_u, uv, Du, Dv);
   const int64_t C = s.C, M = uv.size(0), K = static_cast<int64_t>(levels.size());
   const int wrap_u = static_cast<int>(opts.wrap_u), wrap_v = static_cast<int>(opts.wrap_v);
-  TORCH_CHECK(grad.dim() == 2 && grad.size(0) == C && grad.size(1) == M && grad.scalar_type() == uv.scalar_type(),
+  DT_CHECK(grad.dim() == 2 && grad.size(0) == C && grad.size(1) == M && grad.scalar_type() == uv.scalar_type(),
               "ripmap_read: grad must be [C, M] of uv's dtype");
   const int64_t gsc = grad.stride(0), gsm = grad.stride(1);
-  std::vector<torch::Tensor> gl(K);
-  torch::Tensor guv = need_uv ? torch::zeros({M, 2}, uv.options()) : torch::Tensor();
-  torch::Tensor gu = need_D ? torch::zeros({M}, uv.options()) : torch::Tensor();
-  torch::Tensor gv = need_D ? torch::zeros({M}, uv.options()) : torch::Tensor();
-  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "ripmap_read_backward", [&] {
-    const scalar_t *puv = uv.data_ptr<scalar_t>(), *pu = Du.data_ptr<scalar_t>(), *pv = Dv.data_ptr<scalar_t>(),
-                   *pg = grad.data_ptr<scalar_t>();
+  std::vector<Tensor> gl(K);
+  Tensor guv = need_uv ? zeros({M, 2}, options_of(uv)) : Tensor();
+  Tensor gu = need_D ? zeros({M}, options_of(uv)) : Tensor();
+  Tensor gv = need_D ? zeros({M}, options_of(uv)) : Tensor();
+  DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "ripmap_read_backward", [&] {
+    const scalar_t *puv = uv.mutable_data_ptr<scalar_t>(), *pu = Du.mutable_data_ptr<scalar_t>(), *pv = Dv.mutable_data_ptr<scalar_t>(),
+                   *pg = grad.mutable_data_ptr<scalar_t>();
     const scalar_t bv = static_cast<scalar_t>(opts.border);
     if (need_uv || need_D) {
-      scalar_t* ouv = need_uv ? guv.data_ptr<scalar_t>() : nullptr;
-      scalar_t* ou = need_D ? gu.data_ptr<scalar_t>() : nullptr;
-      scalar_t* ov = need_D ? gv.data_ptr<scalar_t>() : nullptr;
-      at::parallel_for(0, M, 512, [&](int64_t lo, int64_t hi) {
+      scalar_t* ouv = need_uv ? guv.mutable_data_ptr<scalar_t>() : nullptr;
+      scalar_t* ou = need_D ? gu.mutable_data_ptr<scalar_t>() : nullptr;
+      scalar_t* ov = need_D ? gv.mutable_data_ptr<scalar_t>() : nullptr;
+      parallel_for(0, M, 512, [&](int64_t lo, int64_t hi) {
         for (int64_t e = lo; e < hi; ++e) {
           const double u = puv[2 * e], v = puv[2 * e + 1];
           if (!std::isfinite(u) || !std::isfinite(v)) continue;
@@ -372,7 +372,7 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
           double du = 0, dv = 0, dDu = 0, dDv = 0;
           for (int t = 0; t < q.n; ++t) {
             const Level& lv = s.L[q.lv[t]];
-            TORCH_CHECK(lv.h > 0, "ripmap_read: a point reads a level that was not given");
+            DT_CHECK(lv.h > 0, "ripmap_read: a point reads a level that was not given");
             const Bilinear b = taps_folded(fu, fv, lv.h, lv.w, wrap_u, wrap_v);
             const scalar_t* p = static_cast<const scalar_t*>(s.ptr[q.lv[t]]);
             const double fx = b.fx, fy = b.fy;
@@ -414,12 +414,12 @@ std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor, torch::Tens
       std::vector<scalar_t*> gp(K, nullptr);
       for (int64_t k = 0; k < K; ++k) {
         if (!read[k]) continue;
-        TORCH_CHECK(s.L[k].h > 0, "ripmap_read: a point reads a level that was not given");
-        gl[k] = torch::zeros({C, s.L[k].h, s.L[k].w}, uv.options());
-        gp[k] = gl[k].template data_ptr<scalar_t>();
+        DT_CHECK(s.L[k].h > 0, "ripmap_read: a point reads a level that was not given");
+        gl[k] = zeros({C, s.L[k].h, s.L[k].w}, options_of(uv));
+        gp[k] = gl[k].template mutable_data_ptr<scalar_t>();
       }
-      const int64_t T = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), M / 256));
-      at::parallel_for(0, T, 1, [&](int64_t t0, int64_t t1) {
+      const int64_t T = std::max<int64_t>(1, std::min<int64_t>(get_num_threads(), M / 256));
+      parallel_for(0, T, 1, [&](int64_t t0, int64_t t1) {
         for (int64_t t = t0; t < t1; ++t) {
           for (int64_t e = 0; e < M; ++e) {
             const double u = puv[2 * e], v = puv[2 * e + 1];

@@ -3,7 +3,7 @@
 // Declared apart from kernels.h so that only cube.cpp and module.cpp include them.
 #pragma once
 
-#include <torch/extension.h>
+#include "stable.h"
 
 #include <tuple>
 #include <vector>
@@ -19,27 +19,27 @@ constexpr double kDirFloor = 1e-150, kDirFloorFloat = 1e-30;
 // -> (face [M] int8, -1 for a zero and -2 for a non-finite direction; face uv [M, 2]; the level D [M]:
 // lod.py level of the trilinear log2 length in face texels blended across edges as cube.py _log2_length;
 // empty without dx / dy).
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> cube_front(torch::Tensor dirs, torch::Tensor dx,
-                                                                   torch::Tensor dy, torch::Tensor bias,
+std::tuple<Tensor, Tensor, Tensor> cube_front(Tensor dirs, Tensor dx,
+                                                                   Tensor dy, Tensor bias,
                                                                    double bias0, int64_t S, int64_t levels,
                                                                    double band);
 // Its first-order backward from the gradients of uv [M, 2] and D [M] (empty: none) -> the gradients of
 // dirs, dx, dy [M, 3] and bias [M] (dx, dy, bias undefined where not needed).
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor, torch::Tensor> cube_front_backward(
-    torch::Tensor dirs, torch::Tensor dx, torch::Tensor dy, torch::Tensor bias, double bias0, int64_t S,
-    int64_t levels, double band, torch::Tensor guv, torch::Tensor gD, bool need_derivs, bool need_bias);
+std::tuple<Tensor, Tensor, Tensor, Tensor> cube_front_backward(
+    Tensor dirs, Tensor dx, Tensor dy, Tensor bias, double bias0, int64_t S,
+    int64_t levels, double band, Tensor guv, Tensor gD, bool need_derivs, bool need_bias);
 
 // The read: levels [6, C, n_k, n_k] of one cube; per level its gutter ring (1 texel around each face, ring
 // order of cube.py _ring_tables) as 3 source texels (flat in [6, n_k, n_k]) [R_k, 3] int64 and weights
 // [R_k, 3] float64; face [M] int8, uv [M, 2], D [M] (empty: level 0; nearest, d_grad as ReadOptions') ->
 // [C, M]; backward -> (level gradients [6, C, n_k, n_k], undefined where unread or not needed; uv [M, 2];
 // D [M]).
-torch::Tensor cube_read(std::vector<torch::Tensor> levels, std::vector<torch::Tensor> ring_idx,
-                        std::vector<torch::Tensor> ring_w, torch::Tensor face, torch::Tensor uv, torch::Tensor D,
+Tensor cube_read(std::vector<Tensor> levels, std::vector<Tensor> ring_idx,
+                        std::vector<Tensor> ring_w, Tensor face, Tensor uv, Tensor D,
                         bool nearest, bool d_grad);
-std::tuple<std::vector<torch::Tensor>, torch::Tensor, torch::Tensor> cube_read_backward(
-    std::vector<torch::Tensor> levels, std::vector<torch::Tensor> ring_idx, std::vector<torch::Tensor> ring_w,
-    torch::Tensor face, torch::Tensor uv, torch::Tensor D, torch::Tensor grad, bool nearest, bool d_grad,
+std::tuple<std::vector<Tensor>, Tensor, Tensor> cube_read_backward(
+    std::vector<Tensor> levels, std::vector<Tensor> ring_idx, std::vector<Tensor> ring_w,
+    Tensor face, Tensor uv, Tensor D, Tensor grad, bool nearest, bool d_grad,
     bool need_levels, bool need_uv, bool need_D);
 
 }  // namespace difftex

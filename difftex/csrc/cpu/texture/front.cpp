@@ -311,35 +311,35 @@ DT_INLINE Taps front_one(double dx0, double dx1, double dy0, double dy1, double 
 
 }  // namespace
 
-std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> front(torch::Tensor dx, torch::Tensor dy, torch::Tensor bias,
+std::tuple<Tensor, Tensor, Tensor> front(Tensor dx, Tensor dy, Tensor bias,
                                                               double bias0, int64_t H, int64_t W, int64_t levels,
                                                               int64_t kind, double max_aniso, double tolerance) {
   const int64_t M = dx.size(0);
   // Any strides: nvdiffrast's uv_da interleaves uv_dx and uv_dy, and a copy
   // of each would cost more than this pass.
-  TORCH_CHECK(dx.dim() == 2 && dx.size(1) == 2 && dx.device().is_cpu() && dy.sizes() == dx.sizes() &&
+  DT_CHECK(dx.dim() == 2 && dx.size(1) == 2 && dx.is_cpu() && dy.sizes() == dx.sizes() &&
                   dy.scalar_type() == dx.scalar_type(),
               "mip_read.front: uv_dx, uv_dy must be CPU [M, 2] of one dtype");
-  TORCH_CHECK(bias.numel() == 0 || (bias.dim() == 1 && bias.size(0) == M && bias.is_contiguous() &&
+  DT_CHECK(bias.numel() == 0 || (bias.dim() == 1 && bias.size(0) == M && bias.is_contiguous() &&
                                     bias.scalar_type() == dx.scalar_type()),
               "mip_read.front: bias must be contiguous [M] of uv_dx's dtype, or empty");
-  TORCH_CHECK(levels >= 1 && kind >= 0 && kind <= 2, "mip_read.front: levels >= 1, kind 0, 1 or 2");
+  DT_CHECK(levels >= 1 && kind >= 0 && kind <= 2, "mip_read.front: levels >= 1, kind 0, 1 or 2");
   const bool is_auto = kind == 2;
   const double cap = std::max(std::floor(max_aniso), 1.0), exp2_bias0 = std::exp2(bias0 - kLog2Floor);
   const double shrink = 1.0 / (1.0 + tolerance);
-  auto D = torch::empty({M}, dx.options());
-  auto axis = torch::empty({kind ? M : 0, 2}, dx.options());
-  auto count = torch::empty({kind ? M : 0}, dx.options().dtype(torch::kInt64));
-  AT_DISPATCH_FLOATING_TYPES(dx.scalar_type(), "mip_read_front", [&] {
-    const scalar_t* px = dx.data_ptr<scalar_t>();
-    const scalar_t* py = dy.data_ptr<scalar_t>();
+  auto D = empty({M}, options_of(dx));
+  auto axis = empty({kind ? M : 0, 2}, options_of(dx));
+  auto count = empty({kind ? M : 0}, options_of(dx).dtype(kInt64));
+  DT_DISPATCH_FLOATING_TYPES(dx.scalar_type(), "mip_read_front", [&] {
+    const scalar_t* px = dx.mutable_data_ptr<scalar_t>();
+    const scalar_t* py = dy.mutable_data_ptr<scalar_t>();
     const int64_t xr = dx.stride(0), xc = dx.stride(1), yr = dy.stride(0), yc = dy.stride(1);
-    const scalar_t* pb = bias.numel() ? bias.data_ptr<scalar_t>() : nullptr;
-    scalar_t* pD = D.data_ptr<scalar_t>();
-    scalar_t* pa = axis.data_ptr<scalar_t>();
-    int64_t* pn = count.data_ptr<int64_t>();
+    const scalar_t* pb = bias.numel() ? bias.mutable_data_ptr<scalar_t>() : nullptr;
+    scalar_t* pD = D.mutable_data_ptr<scalar_t>();
+    scalar_t* pa = axis.mutable_data_ptr<scalar_t>();
+    int64_t* pn = count.mutable_data_ptr<int64_t>();
     const double h = static_cast<double>(H), w = static_cast<double>(W);
-    at::parallel_for(0, M, 2048, [&](int64_t lo, int64_t hi) {
+    parallel_for(0, M, 2048, [&](int64_t lo, int64_t hi) {
 #if DT_HAVE_AVX2
       // (a run-time dtype test: the dispatch's lambda is no template, so both dtypes compile this)
       if (std::is_same_v<scalar_t, float> && xc == 1 && yc == 1 && simd_on()) {

@@ -148,7 +148,9 @@ void taps_near(const double* x, int cnt, int64_t n, Taps<taps_of<KIND>()>& T) {
   const double nd = static_cast<double>(n);
   const int32_t ni = static_cast<int32_t>(n);
   for (int j = 0; j < cnt; ++j) {
-    double u = x[j];
+    // Lanes past 2^30 (and NaN) are redone by line() afterwards; zero them here so that floor_near's int32
+    // conversion never sees them (undefined behaviour, though its value was discarded).
+    double u = std::abs(x[j]) < kBig ? x[j] : 0.0;
     if (MODE == REPEAT) {
       u = u - floor_near(u);
     } else if (MODE == MIRROR && std::fabs(u) >= 2.0) {
@@ -628,7 +630,7 @@ constexpr int64_t kTileRows = 8, kTileCols = 32;
 
 struct Tiles {
   int64_t M, width, rows, cols;  // points per batch entry, row length, rows per entry, segments per row
-  Tiles(const Args<float>& A, const torch::Tensor& uv) : M(A.M) {
+  Tiles(const Args<float>& A, const Tensor& uv) : M(A.M) {
     width = uv.dim() >= 4 ? uv.size(-2) : M;
     if (width < kTileCols || width == M) width = M;
     rows = width > 0 ? M / width : 0;
@@ -1246,48 +1248,48 @@ __attribute__((target("avx2,fma"))) void keys_avx2(const Args<float>& A, int64_t
 
 // Whether a float32 read of this kind and texture goes through the eight-point path.
 // int32 texel offsets: the whole texture batch (the backward's groups mix textures through per-lane offsets).
-bool simd_read(int64_t kind, const torch::Tensor& texture) {
-  return simd_on() && kind != NEAREST && texture.scalar_type() == torch::kFloat32 &&
+bool simd_read(int64_t kind, const Tensor& texture) {
+  return simd_on() && kind != NEAREST && texture.scalar_type() == kFloat32 &&
          texture.numel() < (int64_t(1) << 31);
 }
 
 // uv is [B, *S, 2] (the caller's pixel shape S, flattened nowhere): the points per batch entry, prod(S).
-int64_t points_of(const torch::Tensor& uv) {
+int64_t points_of(const Tensor& uv) {
   int64_t m = 1;
   for (int64_t d = 1; d + 1 < uv.dim(); ++d) m *= uv.size(d);
   return m;
 }
 
 // [B, C, *S] for uv [B, *S, 2]: the output's and the output gradient's shape.
-std::vector<int64_t> out_shape(const torch::Tensor& uv, int64_t C) {
+std::vector<int64_t> out_shape(const Tensor& uv, int64_t C) {
   std::vector<int64_t> shape{uv.size(0), C};
   for (int64_t d = 1; d + 1 < uv.dim(); ++d) shape.push_back(uv.size(d));
   return shape;
 }
 
 template <typename scalar_t>
-Args<scalar_t> args_of(const torch::Tensor& texture, const torch::Tensor& uv, const ReadOptions& opts) {
+Args<scalar_t> args_of(const Tensor& texture, const Tensor& uv, const ReadOptions& opts) {
   Args<scalar_t> A;
   A.Bt = texture.size(0); A.C = texture.size(1); A.H = texture.size(2); A.W = texture.size(3);
   A.M = points_of(uv); A.image = A.C * A.H * A.W;
   A.cs = texture.stride(1); A.rs = texture.stride(2); A.xs = texture.stride(3);
   A.wrap_u = static_cast<int>(opts.wrap_u); A.wrap_v = static_cast<int>(opts.wrap_v);
   A.border = static_cast<scalar_t>(opts.border);
-  A.tex = texture.data_ptr<scalar_t>();
-  A.uv = uv.data_ptr<scalar_t>();
+  A.tex = texture.mutable_data_ptr<scalar_t>();
+  A.uv = uv.mutable_data_ptr<scalar_t>();
   return A;
 }
 
-void check_inputs(const torch::Tensor& texture, const torch::Tensor& uv, int64_t kind) {
-  TORCH_CHECK(kind >= NEAREST && kind <= CUBIC, "sample: kind must be a filter code 0-2, got ", kind);
-  TORCH_CHECK(texture.dim() == 4 && (texture.is_contiguous() || texture.is_contiguous(at::MemoryFormat::ChannelsLast)) &&
-                  texture.device().is_cpu() && texture.size(1) >= 1 && texture.size(2) >= 1 && texture.size(3) >= 1,
+void check_inputs(const Tensor& texture, const Tensor& uv, int64_t kind) {
+  DT_CHECK(kind >= NEAREST && kind <= CUBIC, "sample: kind must be a filter code 0-2, got ", kind);
+  DT_CHECK(texture.dim() == 4 && (texture.is_contiguous() || is_channels_last(texture)) &&
+                  texture.is_cpu() && texture.size(1) >= 1 && texture.size(2) >= 1 && texture.size(3) >= 1,
               "sample: texture must be a contiguous or channels_last CPU tensor [Bt, C, H, W] with C, H, W >= 1");
-  TORCH_CHECK(uv.dim() >= 2 && uv.size(-1) == 2 && uv.is_contiguous() && uv.scalar_type() == texture.scalar_type(),
+  DT_CHECK(uv.dim() >= 2 && uv.size(-1) == 2 && uv.is_contiguous() && uv.scalar_type() == texture.scalar_type(),
               "sample: uv must be contiguous [B, *S, 2] of the texture's dtype");
-  TORCH_CHECK(texture.size(0) == 1 || texture.size(0) == uv.size(0),
+  DT_CHECK(texture.size(0) == 1 || texture.size(0) == uv.size(0),
               "sample: the texture batch must be 1 or uv's batch");
-  TORCH_CHECK(texture.size(2) < (1 << 30) && texture.size(3) < (1 << 30),
+  DT_CHECK(texture.size(2) < (1 << 30) && texture.size(3) < (1 << 30),
               "sample: texture sides must be under 2^30 texels (int32 indices)");
 }
 
@@ -1303,14 +1305,14 @@ void with_kind(int64_t kind, F&& f) {
 
 }  // namespace
 
-torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, const ReadOptions& opts) {
+Tensor sample(Tensor texture, Tensor uv, int64_t kind, const ReadOptions& opts) {
   check_inputs(texture, uv, kind);
   const int64_t B = uv.size(0), C = texture.size(1), M = points_of(uv);
-  auto out = torch::empty(out_shape(uv, C), uv.options());
+  auto out = empty(out_shape(uv, C), options_of(uv));
   const bool simd = simd_read(kind, texture), wide = simd && wide_on();
-  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "sample_forward", [&] {
+  DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "sample_forward", [&] {
     const Args<scalar_t> A = args_of<scalar_t>(texture, uv, opts);
-    scalar_t* po = out.data_ptr<scalar_t>();
+    scalar_t* po = out.mutable_data_ptr<scalar_t>();
     with_kind(kind, [&](auto k) {
       specialized(C, opts.wrap_u, opts.wrap_v, [&](auto cc, auto border_) {
         constexpr int KIND = decltype(k)::value, CC = decltype(cc)::value;
@@ -1319,7 +1321,7 @@ torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, cons
         if constexpr (std::is_same_v<scalar_t, float> && KIND != NEAREST) {
           if (simd) {
             const Tiles t(A, uv);
-            at::parallel_for(0, t.count(B), 2048 / kTileCols, [&](int64_t lo, int64_t hi) {
+            parallel_for(0, t.count(B), 2048 / kTileCols, [&](int64_t lo, int64_t hi) {
               if (wide) return forward_range_avx512<KIND, CC, kB>(lo, hi, A, t, po);
               forward_range_avx2<KIND, CC, kB>(lo, hi, A, t, po);
             });
@@ -1327,7 +1329,7 @@ torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, cons
           }
         }
 #endif
-        at::parallel_for(0, B * M, 2048,
+        parallel_for(0, B * M, 2048,
                          [&](int64_t lo, int64_t hi) { forward_range<scalar_t, KIND, CC, kB>(lo, hi, A, po); });
       });
     });
@@ -1335,26 +1337,26 @@ torch::Tensor sample(torch::Tensor texture, torch::Tensor uv, int64_t kind, cons
   return out;
 }
 
-std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, torch::Tensor uv, torch::Tensor grad,
+std::tuple<Tensor, Tensor> sample_backward(Tensor texture, Tensor uv, Tensor grad,
                                                          int64_t kind, const ReadOptions& opts, bool need_texture,
                                                          bool need_uv) {
   check_inputs(texture, uv, kind);
   const int64_t B = uv.size(0), Bt = texture.size(0), C = texture.size(1), H = texture.size(2), M = points_of(uv);
-  grad = grad.contiguous();
-  TORCH_CHECK(grad.sizes() == at::IntArrayRef(out_shape(uv, C)) && grad.scalar_type() == uv.scalar_type(),
+  grad = contig(grad);
+  DT_CHECK(grad.sizes() == IntArrayRef(out_shape(uv, C)) && grad.scalar_type() == uv.scalar_type(),
               "sample_backward: grad must be [B, C, *S] of uv's dtype for uv [B, *S, 2]");
   need_uv = need_uv && kind != NEAREST;
   // Laid out like the texture (planar or interleaved): the kernels index both with the same strides.
-  torch::Tensor gt = need_texture ? at::empty_strided(texture.sizes(), texture.strides(), texture.options()).zero_()
-                                  : torch::Tensor();
-  torch::Tensor guv = need_uv ? torch::zeros_like(uv) : torch::Tensor();
+  Tensor gt = need_texture ? zeros_in_layout_of(texture)
+                                  : Tensor();
+  Tensor guv = need_uv ? zeros_like(uv) : Tensor();
   if (!need_texture && !need_uv) return {gt, guv};
   const bool simd = simd_read(kind, texture) && B * C * M < (int64_t(1) << 31);  // int32 gather offsets into grad
-  AT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "sample_backward", [&] {
+  DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "sample_backward", [&] {
     const Args<scalar_t> A = args_of<scalar_t>(texture, uv, opts);
-    const scalar_t* pg = grad.data_ptr<scalar_t>();
-    scalar_t* pgt = need_texture ? gt.data_ptr<scalar_t>() : nullptr;
-    scalar_t* pguv = need_uv ? guv.data_ptr<scalar_t>() : nullptr;
+    const scalar_t* pg = grad.mutable_data_ptr<scalar_t>();
+    scalar_t* pgt = need_texture ? gt.mutable_data_ptr<scalar_t>() : nullptr;
+    scalar_t* pguv = need_uv ? guv.mutable_data_ptr<scalar_t>() : nullptr;
     with_kind(kind, [&](auto k) {
       constexpr int KIND = decltype(k)::value;
       specialized(C, opts.wrap_u, opts.wrap_v, [&](auto cc, auto border_) {
@@ -1376,7 +1378,7 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
           }
         };
         if (!need_texture) {
-          at::parallel_for(0, B * M, 2048, [&](int64_t lo, int64_t hi) {
+          parallel_for(0, B * M, 2048, [&](int64_t lo, int64_t hi) {
             std::vector<int64_t> idx(hi - lo);
             for (int64_t p = lo; p < hi; ++p) idx[p - lo] = p;
             blocks(idx.data(), hi - lo, nullptr);
@@ -1389,7 +1391,7 @@ std::tuple<torch::Tensor, torch::Tensor> sample_backward(torch::Tensor texture, 
         for (int64_t i = 0; i < Bt * nb; ++i) classes[i] = nb > 1 ? static_cast<int32_t>(i % nb % 2) : 0;
         std::vector<int32_t> keys(B * M), band(H);
         for (int64_t r = 0; r < H; ++r) band[r] = static_cast<int32_t>(band_of(r, H, nb));
-        at::parallel_for(0, B * M, 4096, [&](int64_t lo, int64_t hi) {
+        parallel_for(0, B * M, 4096, [&](int64_t lo, int64_t hi) {
           std::vector<int64_t> border_only;  // every tap on the border constant: the uv gradient alone
 #if DT_HAVE_AVX2
           if constexpr (std::is_same_v<scalar_t, float> && KIND != NEAREST) {

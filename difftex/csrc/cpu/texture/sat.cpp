@@ -25,7 +25,7 @@
 #include "boxes.h"
 #include "common.h"
 
-#include <ATen/Parallel.h>
+#include "stable.h"
 
 #include <memory>
 #include <mutex>
@@ -79,17 +79,17 @@ DT_INLINE Cell cell(double p, int64_t n) {
   return {static_cast<int64_t>(f), std::isnan(p) ? p : p - f};
 }
 
-void check_terms(const torch::Tensor& texture, const torch::Tensor& pu, const torch::Tensor& cu,
-                 const torch::Tensor& pv, const torch::Tensor& cv) {
-  TORCH_CHECK(texture.dim() == 3 && texture.is_contiguous() && texture.device().is_cpu() &&
-                  (texture.scalar_type() == torch::kFloat || texture.scalar_type() == torch::kDouble),
+void check_terms(const Tensor& texture, const Tensor& pu, const Tensor& cu,
+                 const Tensor& pv, const Tensor& cv) {
+  DT_CHECK(texture.dim() == 3 && texture.is_contiguous() && texture.is_cpu() &&
+                  (texture.scalar_type() == kFloat32 || texture.scalar_type() == kFloat64),
               "sat: texture must be a contiguous CPU [C, H, W] float32 / float64 tensor");
   for (const auto* t : {&pu, &cu, &pv, &cv})
-    TORCH_CHECK(t->dim() == 2 && t->is_contiguous() && t->scalar_type() == torch::kDouble && t->device().is_cpu(),
+    DT_CHECK(t->dim() == 2 && t->is_contiguous() && t->scalar_type() == kFloat64 && t->is_cpu(),
                 "sat: positions and coefficients must be contiguous CPU float64 [M, K]");
-  TORCH_CHECK(cu.sizes() == pu.sizes() && cv.sizes() == pv.sizes() && pu.size(0) == pv.size(0),
+  DT_CHECK(cu.sizes() == pu.sizes() && cv.sizes() == pv.sizes() && pu.size(0) == pv.size(0),
               "sat: pu, cu must be [M, Ku] and pv, cv [M, Kv]");
-  TORCH_CHECK(pu.size(1) <= 4 && pv.size(1) <= 4, "sat: at most 4 terms per axis");
+  DT_CHECK(pu.size(1) <= 4 && pv.size(1) <= 4, "sat: at most 4 terms per axis");
 }
 
 // The table [H + 1][W + 1][C] of texture [C, H, W] (float64).
@@ -97,9 +97,9 @@ template <typename scalar_t>
 void build_table(const scalar_t* f, int64_t C, int64_t H, int64_t W, double* S) {
   const int64_t row = (W + 1) * C;
   std::fill(S, S + row, 0.0);
-  const int64_t T = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), H / 64));
+  const int64_t T = std::max<int64_t>(1, std::min<int64_t>(get_num_threads(), H / 64));
   // Each block's rows with the rows above the block taken as zero.
-  at::parallel_for(0, T, 1, [&](int64_t t0, int64_t t1) {
+  parallel_for(0, T, 1, [&](int64_t t0, int64_t t1) {
     for (int64_t t = t0; t < t1; ++t) {
       const int64_t r0 = block_start(t, T, H), r1 = block_start(t + 1, T, H);
       std::vector<double> run(C);
@@ -133,7 +133,7 @@ void build_table(const scalar_t* f, int64_t C, int64_t H, int64_t W, double* S) 
       double* last = S + r1 * row;
       for (int64_t x = 0; x < row; ++x) last[x] += off[x];
     }
-    at::parallel_for(1, T, 1, [&](int64_t t0, int64_t t1) {
+    parallel_for(1, T, 1, [&](int64_t t0, int64_t t1) {
       for (int64_t t = t0; t < t1; ++t) {
         const int64_t r0 = block_start(t, T, H), r1 = block_start(t + 1, T, H);
         const double* off = S + r0 * row;
@@ -148,31 +148,31 @@ void build_table(const scalar_t* f, int64_t C, int64_t H, int64_t W, double* S) 
 
 }  // namespace
 
-std::vector<torch::Tensor> sat_forward(torch::Tensor texture, torch::Tensor pu, torch::Tensor cu, torch::Tensor pv,
-                                       torch::Tensor cv, bool jacobians, bool coef_grads) {
+std::vector<Tensor> sat_forward(Tensor texture, Tensor pu, Tensor cu, Tensor pv,
+                                       Tensor cv, bool jacobians, bool coef_grads) {
   check_terms(texture, pu, cu, pv, cv);
   const int64_t C = texture.size(0), H = texture.size(1), W = texture.size(2);
   const int64_t M = pu.size(0), Ku = pu.size(1), Kv = pv.size(1), row = (W + 1) * C;
-  auto opts = pu.options();
-  auto out = torch::empty({C, M}, opts);
-  torch::Tensor jpu, jcu, jpv, jcv;
+  auto opts = options_of(pu);
+  auto out = empty({C, M}, opts);
+  Tensor jpu, jcu, jpv, jcv;
   if (jacobians) {
-    jpu = torch::empty({C, M, Ku}, opts);
-    jcu = torch::empty({C, M, Ku}, opts);
-    jpv = torch::empty({C, M, Kv}, opts);
-    jcv = torch::empty({C, M, Kv}, opts);
+    jpu = empty({C, M, Ku}, opts);
+    jcu = empty({C, M, Ku}, opts);
+    jpv = empty({C, M, Kv}, opts);
+    jcv = empty({C, M, Kv}, opts);
   }
   Scratch S(0, static_cast<size_t>((H + 1) * row));
-  AT_DISPATCH_FLOATING_TYPES(texture.scalar_type(), "sat_forward", [&] {
-    build_table(texture.data_ptr<scalar_t>(), C, H, W, S.data());
+  DT_DISPATCH_FLOATING_TYPES(texture.scalar_type(), "sat_forward", [&] {
+    build_table(texture.mutable_data_ptr<scalar_t>(), C, H, W, S.data());
   });
-  const double *ppu = pu.data_ptr<double>(), *pcu = cu.data_ptr<double>(), *ppv = pv.data_ptr<double>(),
-               *pcv = cv.data_ptr<double>();
-  double* po = out.data_ptr<double>();
-  double* J[4] = {jacobians ? jpu.data_ptr<double>() : nullptr, jacobians ? jcu.data_ptr<double>() : nullptr,
-                  jacobians ? jpv.data_ptr<double>() : nullptr, jacobians ? jcv.data_ptr<double>() : nullptr};
+  const double *ppu = pu.mutable_data_ptr<double>(), *pcu = cu.mutable_data_ptr<double>(), *ppv = pv.mutable_data_ptr<double>(),
+               *pcv = cv.mutable_data_ptr<double>();
+  double* po = out.mutable_data_ptr<double>();
+  double* J[4] = {jacobians ? jpu.mutable_data_ptr<double>() : nullptr, jacobians ? jcu.mutable_data_ptr<double>() : nullptr,
+                  jacobians ? jpv.mutable_data_ptr<double>() : nullptr, jacobians ? jcv.mutable_data_ptr<double>() : nullptr};
   const double* tab = S.data();
-  at::parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
+  parallel_for(0, M, 1024, [&](int64_t lo, int64_t hi) {
     std::vector<double> buf(static_cast<size_t>(C) * 16 * 4);
     for (int64_t e = lo; e < hi; ++e) {
       Cell x[4], y[4];
@@ -238,18 +238,18 @@ struct Entry {
 
 }  // namespace
 
-torch::Tensor sat_backward(torch::Tensor texture, torch::Tensor pu, torch::Tensor cu, torch::Tensor pv,
-                           torch::Tensor cv, torch::Tensor grad) {
+Tensor sat_backward(Tensor texture, Tensor pu, Tensor cu, Tensor pv,
+                           Tensor cv, Tensor grad) {
   check_terms(texture, pu, cu, pv, cv);
   const int64_t C = texture.size(0), H = texture.size(1), W = texture.size(2);
   const int64_t M = pu.size(0), Ku = pu.size(1), Kv = pv.size(1);
   // Any strides (a transposed output gradient is read in place).
-  TORCH_CHECK(grad.dim() == 2 && grad.size(0) == C && grad.size(1) == M && grad.scalar_type() == torch::kDouble,
+  DT_CHECK(grad.dim() == 2 && grad.size(0) == C && grad.size(1) == M && grad.scalar_type() == kFloat64,
               "sat: grad must be float64 [C, M]");
   const int64_t gsc = grad.stride(0), gsm = grad.stride(1);
-  auto out = torch::empty({C, H, W}, texture.options());
-  const double *ppu = pu.data_ptr<double>(), *pcu = cu.data_ptr<double>(), *ppv = pv.data_ptr<double>(),
-               *pcv = cv.data_ptr<double>(), *pg = grad.data_ptr<double>();
+  auto out = empty({C, H, W}, options_of(texture));
+  const double *ppu = pu.mutable_data_ptr<double>(), *pcu = cu.mutable_data_ptr<double>(), *ppv = pv.mutable_data_ptr<double>(),
+               *pcv = cv.mutable_data_ptr<double>(), *pg = grad.mutable_data_ptr<double>();
   // The table's gradient is sparse (two rows of two entries per read): its entries are sorted by table row
   // (a counting sort), and the suffix sums sweep the rows bottom up with one dense row of the table's gradient
   // and the running column sums (each W x C doubles, in cache) instead of a texture-sized float64 buffer: the
@@ -280,7 +280,7 @@ torch::Tensor sat_backward(torch::Tensor texture, torch::Tensor pu, torch::Tenso
     for_entries([&](int64_t b, const Entry& x) { entries[fill[b]++] = x; });
   }
   // Row blocks per thread: table rows [b0, b1) with b0 = 1 + H t / T (texture rows one lower).
-  const int64_t T = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), H / 64));
+  const int64_t T = std::max<int64_t>(1, std::min<int64_t>(get_num_threads(), H / 64));
   const int64_t WC = W * C, RC = (W + 1) * C;
   // offset[t]: the column suffix sums of every table row below block t (from the blocks' own totals).
   std::vector<double> offset(static_cast<size_t>(T * WC), 0.0);
@@ -306,7 +306,7 @@ torch::Tensor sat_backward(torch::Tensor texture, torch::Tensor pu, torch::Tenso
   if (T > 1) {
     // Each block's total (the sum of its rows, suffix-summed once), then the totals below each block.
     std::vector<double> total(static_cast<size_t>(T * WC), 0.0);
-    at::parallel_for(0, T, 1, [&](int64_t t0, int64_t t1) {
+    parallel_for(0, T, 1, [&](int64_t t0, int64_t t1) {
       std::vector<double> R(RC), run(C);
       for (int64_t t = t0; t < t1; ++t) {
         std::fill(R.begin(), R.end(), 0.0);
@@ -317,9 +317,9 @@ torch::Tensor sat_backward(torch::Tensor texture, torch::Tensor pu, torch::Tenso
     for (int64_t t = T - 2; t >= 0; --t)
       for (int64_t x = 0; x < WC; ++x) offset[t * WC + x] = offset[(t + 1) * WC + x] + total[(t + 1) * WC + x];
   }
-  AT_DISPATCH_FLOATING_TYPES(texture.scalar_type(), "sat_backward", [&] {
-    scalar_t* po = out.data_ptr<scalar_t>();
-    at::parallel_for(0, T, 1, [&](int64_t t0, int64_t t1) {
+  DT_DISPATCH_FLOATING_TYPES(texture.scalar_type(), "sat_backward", [&] {
+    scalar_t* po = out.mutable_data_ptr<scalar_t>();
+    parallel_for(0, T, 1, [&](int64_t t0, int64_t t1) {
       std::vector<double> R(RC), acc(WC), run(C);
       for (int64_t t = t0; t < t1; ++t) {
         std::copy(offset.data() + t * WC, offset.data() + (t + 1) * WC, acc.begin());

@@ -19,7 +19,7 @@
 // which bands run where.
 #pragma once
 
-#include <ATen/Parallel.h>
+#include "stable.h"
 
 #include <algorithm>
 #include <cstdint>
@@ -71,10 +71,10 @@ inline ScaleBands scale_bands(int64_t h0) {
 template <typename KeyRange>
 std::vector<char> band_key_ranges(int64_t M, int64_t K, std::vector<int32_t>& keys, KeyRange key_range) {
   keys.resize(M);
-  const int64_t T = std::max<int64_t>(1, at::get_num_threads());
+  const int64_t T = std::max<int64_t>(1, get_num_threads());
   std::vector<std::vector<char>> read(T, std::vector<char>(K, 0));
-  at::parallel_for(0, M, 4096, [&](int64_t lo, int64_t hi) {
-    key_range(lo, hi, keys.data(), read[std::min<int64_t>(at::get_thread_num(), T - 1)].data());
+  parallel_for(0, M, 4096, [&](int64_t lo, int64_t hi) {
+    key_range(lo, hi, keys.data(), read[std::min<int64_t>(get_thread_num(), T - 1)].data());
   });
   std::vector<char> any(K, 0);
   for (const auto& rd : read)
@@ -95,7 +95,7 @@ std::vector<char> band_keys(int64_t M, int64_t K, std::vector<int32_t>& keys, Ke
 inline int64_t band_of(int64_t r, int64_t h, int64_t nb) { return r * nb / h; }
 
 // Runs work(idx, n) over every point e in [0, M) with keys[e] >= 0 (idx:
-// n of them, in order), on at::parallel_for threads. keys[e] is a band in [0, classes.size()),
+// n of them, in order), on parallel_for threads. keys[e] is a band in [0, classes.size()),
 // classes[band] its class; the classes run in order, the bands of one
 // class in parallel (grouped by point count, so that threads get similar
 // work), each band's points in index order. Below `serial_below` points a
@@ -107,12 +107,12 @@ template <typename Work>
 void run_banded(const int32_t* keys, int64_t M, const std::vector<int32_t>& classes, Work&& work,
                 int64_t serial_below = 1024) {
   const int64_t nbands = static_cast<int64_t>(classes.size());
-  const int64_t T = std::max<int64_t>(1, at::get_num_threads());
+  const int64_t T = std::max<int64_t>(1, get_num_threads());
   // Fixed chunks of points, so that the sort's order does not depend on which thread takes which chunk.
   const int64_t chunks = std::max<int64_t>(1, std::min<int64_t>(T, M >> 15));
   const int64_t step = (M + chunks - 1) / chunks;
   std::vector<int64_t> hist(chunks * nbands, 0);  // hist[c * nbands + b]: chunk c's points in band b
-  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+  parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
     for (int64_t c = c0; c < c1; ++c) {
       int64_t* h = hist.data() + c * nbands;
       for (int64_t e = c * step, end = std::min(M, e + step); e < end; ++e)
@@ -131,7 +131,7 @@ void run_banded(const int32_t* keys, int64_t M, const std::vector<int32_t>& clas
     start[b + 1] = at;
   }
   std::vector<int64_t> order(start[nbands]);
-  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+  parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
     for (int64_t c = c0; c < c1; ++c) {
       int64_t* slot = hist.data() + c * nbands;
       for (int64_t e = c * step, end = std::min(M, e + step); e < end; ++e)
@@ -159,7 +159,7 @@ void run_banded(const int32_t* keys, int64_t M, const std::vector<int32_t>& clas
       while (g <= own) first[g++] = i;
       before += n;
     }
-    at::parallel_for(0, G, 1, [&](int64_t g0, int64_t g1) {
+    parallel_for(0, G, 1, [&](int64_t g0, int64_t g1) {
       for (int64_t i = first[g0]; i < first[g1]; ++i)
         // The points go to work in short runs (blocks of the kernels).
         for (int64_t s = start[bands[i]], end = start[bands[i] + 1]; s < end; s += 256)

@@ -32,7 +32,7 @@
 #include "common.h"
 #include "kernels.h"
 
-#include <ATen/Parallel.h>
+#include "stable.h"
 
 #include <algorithm>
 #include <atomic>
@@ -157,7 +157,7 @@ struct Float {
 };
 
 // Work items [0, n) handed out one at a time to the threads of one
-// at::parallel_for region (its static split into equal ranges left one
+// parallel_for region (its static split into equal ranges left one
 // thread idle while the other drew the rows where the mesh is): run(next)
 // is called once per thread with a function giving the next item, or -1.
 // Which thread does an item does not change the result: each item owns its
@@ -165,8 +165,8 @@ struct Float {
 template <typename Run>
 void dynamic_for(int64_t n, Run&& run) {
   std::atomic<int64_t> counter{0};
-  const int64_t threads = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), n));
-  at::parallel_for(0, threads, 1, [&](int64_t lo, int64_t hi) {
+  const int64_t threads = std::max<int64_t>(1, std::min<int64_t>(get_num_threads(), n));
+  parallel_for(0, threads, 1, [&](int64_t lo, int64_t hi) {
     auto next = [&]() -> int64_t {
       const int64_t i = counter.fetch_add(1, std::memory_order_relaxed);
       return i < n ? i : -1;
@@ -645,40 +645,40 @@ __attribute__((target("avx2,fma"))) unsigned dropped8(const int64_t* fv, const V
 
 }  // namespace
 
-std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor faces, int64_t H, int64_t W,
-                                                bool cull, int64_t bits, torch::Tensor floor_z,
-                                                torch::Tensor floor_id, bool count, int64_t layers) {
-  TORCH_CHECK(pos.device().is_cpu() && (pos.scalar_type() == torch::kFloat64 || pos.scalar_type() == torch::kFloat32) &&
+std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W,
+                                                bool cull, int64_t bits, Tensor floor_z,
+                                                Tensor floor_id, bool count, int64_t layers) {
+  DT_CHECK(pos.is_cpu() && (pos.scalar_type() == kFloat64 || pos.scalar_type() == kFloat32) &&
                   pos.dim() == 3 && pos.size(2) == 4,
               "raster: pos must be a CPU float32 or float64 tensor [B, V, 4]");
-  TORCH_CHECK(faces.device().is_cpu() && faces.scalar_type() == torch::kInt64 && faces.dim() == 2 &&
+  DT_CHECK(faces.is_cpu() && faces.scalar_type() == kInt64 && faces.dim() == 2 &&
                   faces.size(1) == 3,
               "raster: faces must be a CPU int64 tensor [F, 3]");
-  TORCH_CHECK(H > 0 && W > 0 && bits >= 0 && bits <= 16, "raster: bad resolution or sub-pixel bits");
-  pos = pos.contiguous();
-  faces = faces.contiguous();
+  DT_CHECK(H > 0 && W > 0 && bits >= 0 && bits <= 16, "raster: bad resolution or sub-pixel bits");
+  pos = contig(pos);
+  faces = contig(faces);
   const int64_t B = pos.size(0), V = pos.size(1), F = faces.size(0), HW = H * W;
-  TORCH_CHECK(F < kFloatBit && V <= std::numeric_limits<int32_t>::max(),
+  DT_CHECK(F < kFloatBit && V <= std::numeric_limits<int32_t>::max(),
               "raster: at most 2^30 - 1 triangles and 2^31 - 1 vertices");
   const bool has_floor = floor_z.numel() > 0;
-  TORCH_CHECK(layers >= 1 && (layers == 1 || (!has_floor && !count)),
+  DT_CHECK(layers >= 1 && (layers == 1 || (!has_floor && !count)),
               "raster: layers >= 1, and 1 with a floor or a count");
   const int64_t K = layers;
   if (has_floor) {
-    TORCH_CHECK(floor_z.numel() == B * HW && floor_id.numel() == B * HW &&
-                    floor_z.scalar_type() == torch::kFloat64 && floor_id.scalar_type() == torch::kInt64,
+    DT_CHECK(floor_z.numel() == B * HW && floor_id.numel() == B * HW &&
+                    floor_z.scalar_type() == kFloat64 && floor_id.scalar_type() == kInt64,
                 "raster: floor must be float64 depth and int64 ids, [B * H * W] each");
-    floor_z = floor_z.contiguous();
-    floor_id = floor_id.contiguous();
+    floor_z = contig(floor_z);
+    floor_id = contig(floor_id);
   }
   // K > 1: ids layer-major [K, B * H * W] (each layer contiguous) and the
   // depth of the K-th layer only (the floor of any further layer).
-  auto ids = torch::empty({K * B * HW}, torch::kInt64);
-  auto depth = torch::empty({B * HW}, torch::kFloat64);
-  const double* fz = has_floor ? floor_z.data_ptr<double>() : nullptr;
-  const int64_t* fi = has_floor ? floor_id.data_ptr<int64_t>() : nullptr;
-  int64_t* out_id = ids.data_ptr<int64_t>();
-  double* out_z = depth.data_ptr<double>();
+  auto ids = empty({K * B * HW}, kInt64);
+  auto depth = empty({B * HW}, kFloat64);
+  const double* fz = has_floor ? floor_z.mutable_data_ptr<double>() : nullptr;
+  const int64_t* fi = has_floor ? floor_id.mutable_data_ptr<int64_t>() : nullptr;
+  int64_t* out_id = ids.mutable_data_ptr<int64_t>();
+  double* out_z = depth.mutable_data_ptr<double>();
   const int64_t S = bits;
   const double sx = S > 0 ? double(W << (S - 1)) : 0.0, sy = S > 0 ? -double(H << (S - 1)) : 0.0;
   std::vector<double> xs(W), ys(H);
@@ -700,10 +700,10 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
 
   for (int64_t bi = 0; bi < B; ++bi) {
     all_in.store(true, std::memory_order_relaxed);
-    const bool f32 = pos.scalar_type() == torch::kFloat32;
+    const bool f32 = pos.scalar_type() == kFloat32;
     const char* P = static_cast<const char*>(pos.data_ptr()) + bi * V * 4 * (f32 ? 4 : 8);
     // Vertices: the float path's scale and outcode, the exact path's snap.
-    const Ctx cx{P, f32, faces.data_ptr<int64_t>(), vert.get(), H, W, S, cull};
+    const Ctx cx{P, f32, faces.mutable_data_ptr<int64_t>(), vert.get(), H, W, S, cull};
     constexpr int64_t kVertBlock = 16384;  // vertices an item of the vertex pass
     dynamic_for((V + kVertBlock - 1) / kVertBlock, [&](auto&& next_block) {
       // Locals: the outcode is a byte store, which may alias anything.
@@ -809,7 +809,7 @@ std::tuple<torch::Tensor, torch::Tensor> raster(torch::Tensor pos, torch::Tensor
           for (int32_t b = t.band0; b <= t.band1; ++b) ++cnt[ch * nb + b];
       }
     });
-    if (bad.load()) return {torch::empty({0}, torch::kInt64), torch::empty({0}, torch::kFloat64)};
+    if (bad.load()) return {empty({0}, kInt64), empty({0}, kFloat64)};
     std::vector<int64_t> start(nb + 1, 0);
     int64_t total = 0;
     for (int64_t b = 0; b < nb; ++b) {
@@ -1113,23 +1113,23 @@ struct Tri {
 // over the pixels of tri_id [B, H, W] (-1 background) writes the dense
 // outputs, zeros on background, and the covered pixels in compact form
 // (flat index order), so no nonzero / gather / scatter on the Python side.
-std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor faces, torch::Tensor tri_id,
+std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
                                             bool packed, int64_t offset) {
-  TORCH_CHECK(pos.device().is_cpu() && pos.dim() == 3 && pos.size(2) == 4 && faces.dim() == 2 &&
-                  faces.size(1) == 3 && faces.scalar_type() == torch::kInt64 && tri_id.dim() == 3 &&
-                  tri_id.scalar_type() == torch::kInt64 && tri_id.size(0) == pos.size(0),
+  DT_CHECK(pos.is_cpu() && pos.dim() == 3 && pos.size(2) == 4 && faces.dim() == 2 &&
+                  faces.size(1) == 3 && faces.scalar_type() == kInt64 && tri_id.dim() == 3 &&
+                  tri_id.scalar_type() == kInt64 && tri_id.size(0) == pos.size(0),
               "raster_fragments: expected pos [B, V, 4] float, faces [F, 3] int64, tri_id [B, H, W] int64 on the CPU");
-  pos = pos.contiguous();
-  faces = faces.contiguous();
-  tri_id = tri_id.contiguous();
+  pos = contig(pos);
+  faces = contig(faces);
+  tri_id = contig(tri_id);
   const int64_t B = tri_id.size(0), H = tri_id.size(1), W = tri_id.size(2), V = pos.size(1), F = faces.size(0);
   const int64_t rows = B * H;
-  const int64_t* pid = tri_id.data_ptr<int64_t>();
-  const int64_t* pf = faces.data_ptr<int64_t>();
+  const int64_t* pid = tri_id.mutable_data_ptr<int64_t>();
+  const int64_t* pf = faces.mutable_data_ptr<int64_t>();
   // Covered pixels per image row, then their prefix: each row's first slot
   // in the compact outputs, so the rows can be filled in parallel.
   std::vector<int64_t> first(rows + 1, 0);
-  at::parallel_for(0, rows, 64, [&](int64_t lo, int64_t hi) {
+  parallel_for(0, rows, 64, [&](int64_t lo, int64_t hi) {
     for (int64_t r = lo; r < hi; ++r) {
       int64_t n = 0;
       for (int64_t c = 0; c < W; ++c) n += pid[r * W + c] >= 0;
@@ -1138,30 +1138,30 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
   });
   for (int64_t r = 0; r < rows; ++r) first[r + 1] += first[r];
   const int64_t N = first[rows];
-  auto opt = pos.options();
-  auto idx = torch::empty({N}, tri_id.options());
+  auto opt = options_of(pos);
+  auto idx = empty({N}, options_of(tri_id));
   // Every byte of the dense outputs is written once: covered pixels by the
   // formula, background runs of a row by one memset per output (zeros
   // first and covered pixels after cost a second pass over the covered
   // ones, the bound of a mostly covered image).
-  auto dense = [&](at::IntArrayRef shape, const at::TensorOptions& o) { return torch::empty(shape, o); };
-  std::vector<torch::Tensor> out{idx};
+  auto dense = [&](IntArrayRef shape, Options o) { return empty(shape, o); };
+  std::vector<Tensor> out{idx};
   if (packed) {
     out.push_back(dense({B, H, W, 4}, opt));  // rast: (b0, b1, depth, id + 1 + offset), 0 on background
     out.push_back(dense({B, H, W, 4}, opt));  // db: (db0/dX, db0/dY, db1/dX, db1/dY)
   } else {
-    for (auto k : {3, 3, 3}) out.push_back(torch::empty({N, k}, opt));  // compact bary, d/dcolumn, d/drow
+    for (auto k : {3, 3, 3}) out.push_back(empty({N, k}, opt));  // compact bary, d/dcolumn, d/drow
     out.push_back(dense({B, H, W, 3}, opt));
     out.push_back(dense({B, H, W}, opt));
     out.push_back(dense({B, H, W, 3}, opt));
     out.push_back(dense({B, H, W, 3}, opt));
   }
-  AT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "raster_fragments", [&] {
+  DT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "raster_fragments", [&] {
     using T = scalar_t;
-    const T* pp = pos.data_ptr<T>();
-    int64_t* pidx = idx.data_ptr<int64_t>();
+    const T* pp = pos.mutable_data_ptr<T>();
+    int64_t* pidx = idx.mutable_data_ptr<int64_t>();
     std::vector<T*> o;
-    for (size_t i = 1; i < out.size(); ++i) o.push_back(out[i].data_ptr<T>());
+    for (size_t i = 1; i < out.size(); ++i) o.push_back(out[i].mutable_data_ptr<T>());
     const T sx = T(2.0 / double(W)), sy = T(-2.0 / double(H));
     const T hx = T(2.0 / double(W)), hy = T(2.0 / double(H));
     constexpr int64_t kRows = 8;  // rows an item
@@ -1237,46 +1237,46 @@ std::vector<torch::Tensor> raster_fragments(torch::Tensor pos, torch::Tensor fac
 // [B, H, W, 4]), rast's depth and id taking none. -> the gradient of pos
 // [B, V, 4]. Threads accumulate into their own copy of it, summed at the
 // end (no atomics; the order of the sums follows the thread split).
-torch::Tensor raster_fragments_backward(torch::Tensor pos, torch::Tensor faces, torch::Tensor tri_id,
-                                        torch::Tensor idx, std::vector<torch::Tensor> grads, bool packed) {
-  TORCH_CHECK(pos.device().is_cpu() && pos.dim() == 3 && pos.size(2) == 4 && idx.scalar_type() == torch::kInt64 &&
+Tensor raster_fragments_backward(Tensor pos, Tensor faces, Tensor tri_id,
+                                        Tensor idx, std::vector<Tensor> grads, bool packed) {
+  DT_CHECK(pos.is_cpu() && pos.dim() == 3 && pos.size(2) == 4 && idx.scalar_type() == kInt64 &&
                   grads.size() == (packed ? 2u : 7u),
               "raster_fragments_backward: expected pos [B, V, 4] float, idx [N] int64 on the CPU and 7 (2 packed) "
               "gradients");
-  pos = pos.contiguous();
-  faces = faces.contiguous();
-  tri_id = tri_id.contiguous();
-  idx = idx.contiguous();
+  pos = contig(pos);
+  faces = contig(faces);
+  tri_id = contig(tri_id);
+  idx = contig(idx);
   for (auto& t : grads) {
     if (!t.defined() || t.numel() == 0) {
-      t = torch::Tensor();
+      t = Tensor();
       continue;
     }
-    TORCH_CHECK(t.scalar_type() == pos.scalar_type(), "raster_fragments_backward: gradient dtype");
-    t = t.contiguous();
+    DT_CHECK(t.scalar_type() == pos.scalar_type(), "raster_fragments_backward: gradient dtype");
+    t = contig(t);
   }
   const int64_t N = idx.size(0), H = tri_id.size(1), W = tri_id.size(2), V = pos.size(1);
-  const int64_t threads = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), (N + 4095) / 4096));
-  auto acc = torch::zeros({threads, pos.numel()}, pos.options());
-  AT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "raster_fragments_backward", [&] {
+  const int64_t threads = std::max<int64_t>(1, std::min<int64_t>(get_num_threads(), (N + 4095) / 4096));
+  auto acc = zeros({threads, pos.numel()}, options_of(pos));
+  DT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "raster_fragments_backward", [&] {
     using T = scalar_t;
-    const T* pp = pos.data_ptr<T>();
-    const int64_t* pf = faces.data_ptr<int64_t>();
-    const int64_t* pid = tri_id.data_ptr<int64_t>();
-    const int64_t* pidx = idx.data_ptr<int64_t>();
+    const T* pp = pos.mutable_data_ptr<T>();
+    const int64_t* pf = faces.mutable_data_ptr<int64_t>();
+    const int64_t* pid = tri_id.mutable_data_ptr<int64_t>();
+    const int64_t* pidx = idx.mutable_data_ptr<int64_t>();
     std::vector<const T*> g;
-    for (auto& t : grads) g.push_back(t.defined() ? t.data_ptr<T>() : nullptr);
+    for (auto& t : grads) g.push_back(t.defined() ? t.mutable_data_ptr<T>() : nullptr);
     // Which of bary, depth, d/dcolumn, d/drow receive a gradient at all.
     const bool has_b = packed ? g[0] != nullptr : (g[0] || g[3]);
     const bool has_z = !packed && g[4];
     const bool has_dx = packed ? g[1] != nullptr : (g[1] || g[5]);
     const bool has_dy = packed ? g[1] != nullptr : (g[2] || g[6]);
-    T* pacc = acc.data_ptr<T>();
+    T* pacc = acc.mutable_data_ptr<T>();
     const T sx = T(2.0 / double(W)), sy = T(-2.0 / double(H));
     const T hx = T(2.0 / double(W)), hy = T(2.0 / double(H));
     const int64_t chunk = (N + threads - 1) / threads;
     const int64_t F = faces.size(0);
-    at::parallel_for(0, threads, 1, [&](int64_t lo, int64_t hi) {
+    parallel_for(0, threads, 1, [&](int64_t lo, int64_t hi) {
       T gc[12], gB[3], gDx[3], gDy[3], gZ = 0;
       Tri<T> tri;
       for (int64_t t = lo; t < hi; ++t) {
@@ -1315,7 +1315,7 @@ torch::Tensor raster_fragments_backward(torch::Tensor pos, torch::Tensor faces, 
       }
     });
   });
-  return (threads == 1 ? acc[0] : acc.sum(0)).view(pos.sizes());
+  return torch::stable::view(threads == 1 ? torch::stable::select(acc, 0, 0) : torch::stable::sum(acc, std::vector<int64_t>{0}), pos.sizes());
 }
 
 }  // namespace difftex
