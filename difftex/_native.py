@@ -104,8 +104,9 @@ class Kernel:
         return self._ops.taps_forward(levels, uv, D, axis, count, *opts.flat())
 
     def backward(self, levels, uv, D, axis, count, grad, opts: ReadOptions, need: TapNeeds):
-        return self._ops.taps_backward(levels, uv, D, axis, count, grad, *opts.flat(), need.levels, need.uv,
-                                       need.D, need.axis)
+        gl, *rest = self._ops.taps_backward(levels, uv, D, axis, count, grad, *opts.flat(), need.levels, need.uv,
+                                            need.D, need.axis)
+        return (_read(gl), *rest)
 
     def front(self, dx, dy, bias, *, bias0, height, width, levels, kind, max_aniso, tolerance):
         return self._ops.tap_front(dx, dy, bias, bias0, height, width, levels, kind, max_aniso, tolerance)
@@ -125,9 +126,10 @@ class Kernel:
 
     def ewa_backward(self, levels, uv, sigma, minor, scale, D, grad, full_h, full_w, opts: ReadOptions,
                      need: EwaNeeds):
-        return self._ops.ewa_backward(levels, uv, sigma, minor, scale, D, grad, full_h, full_w, opts.wrap_u,
-                                      opts.wrap_v, opts.border, opts.d_grad, need.levels, need.uv,
-                                      need.ellipse, need.D)
+        gl, *rest = self._ops.ewa_backward(levels, uv, sigma, minor, scale, D, grad, full_h, full_w, opts.wrap_u,
+                                           opts.wrap_v, opts.border, opts.d_grad, need.levels, need.uv,
+                                           need.ellipse, need.D)
+        return (_read(gl), *rest)
 
     # single.cpp
     def sample(self, texture, uv, kind: int, opts: ReadOptions) -> Tensor:
@@ -161,8 +163,9 @@ class Kernel:
 
     def cube_read_backward(self, levels, ring_idx, ring_w, face, uv, D, grad, nearest, d_grad, *, need_levels,
                            need_uv, need_D):
-        return self._ops.cube_read_backward(levels, ring_idx, ring_w, face, uv, D, grad, nearest, d_grad,
-                                            need_levels, need_uv, need_D)
+        gl, *rest = self._ops.cube_read_backward(levels, ring_idx, ring_w, face, uv, D, grad, nearest, d_grad,
+                                                 need_levels, need_uv, need_D)
+        return (_read(gl), *rest)
 
     # sat.cpp / ripmap.cpp: the box filters
     def sat_forward(self, texture, pu, cu, pv, cv, *, jacobians: bool = False, coef_grads: bool = True):
@@ -172,7 +175,10 @@ class Kernel:
         return self._ops.sat_backward(texture, pu, cu, pv, cv, grad)
 
     def ripmap_build(self, texture, n_u: int, n_v: int, wanted: Sequence[bool]):
-        return self._ops.ripmap_build(texture, n_u, n_v, [int(w) for w in wanted])
+        built = self._ops.ripmap_build(texture, n_u, n_v, [int(w) for w in wanted])
+        if built and built[0] is None and wanted[0]:  # level (0, 0) is the texture (an op output may not alias it)
+            built[0] = texture.contiguous()
+        return built
 
     def ripmap_adjoint(self, grads, n_u: int, n_v: int, H: int, W: int) -> Tensor:
         return self._ops.ripmap_adjoint(grads, n_u, n_v, H, W)
@@ -182,8 +188,14 @@ class Kernel:
 
     def ripmap_read_backward(self, levels, n_u, uv, Du, Dv, grad, opts: ReadOptions, *, need_levels, need_uv,
                              need_D):
-        return self._ops.ripmap_read_backward(levels, n_u, uv, Du, Dv, grad, opts.wrap_u, opts.wrap_v, opts.border,
-                                              opts.d_grad, need_levels, need_uv, need_D)
+        gl, *rest = self._ops.ripmap_read_backward(levels, n_u, uv, Du, Dv, grad, opts.wrap_u, opts.wrap_v,
+                                                   opts.border, opts.d_grad, need_levels, need_uv, need_D)
+        return (_read(gl), *rest)
+
+
+def _read(grads: list) -> list:
+    """A backward's level gradients with None for the levels not read (the ops return them with no rows)."""
+    return [g if g.shape[0] else None for g in grads]
 
 
 _kernel: Kernel | None = None
@@ -285,6 +297,11 @@ def _register_fakes() -> None:
     def like(t: Tensor, *shape: int, dtype: Optional[torch.dtype] = None) -> Tensor:
         return t.new_empty(shape, dtype=dtype or t.dtype)
 
+    def level_grads(levels, dtype) -> list:
+        # Which levels a point reads depends on the data: a read level's gradient has its rows, an unread
+        # one none (difftex._native._read), so the first size is unbacked.
+        return [levels[0].new_empty((get_ctx().new_dynamic_size(), *t.shape[1:]), dtype=dtype) for t in levels]
+
     @register_fake("difftex::taps_forward")
     def _(levels, uv, D, axis, count, wrap_u, wrap_v, border, nearest, d_grad):
         return like(uv, levels[0].shape[0], uv.shape[0])
@@ -292,15 +309,14 @@ def _register_fakes() -> None:
     @register_fake("difftex::taps_backward")
     def _(levels, uv, D, axis, count, grad, wrap_u, wrap_v, border, nearest, d_grad, need_levels, need_uv, need_D,
           need_axis):
-        return ([torch.empty_like(t) for t in levels] if need_levels else [None] * len(levels),
-                torch.empty_like(uv) if need_uv else None, torch.empty_like(D) if need_D else None,
-                torch.empty_like(uv) if need_axis else None)
+        return (level_grads(levels, uv.dtype), torch.empty_like(uv) if need_uv else None,
+                torch.empty_like(D) if need_D else None, torch.empty_like(uv) if need_axis else None)
 
     @register_fake("difftex::tap_front")
     def _(dx, dy, bias, bias0, H, W, levels, kind, max_aniso, tolerance):
         M = dx.shape[0]
         taps = kind != 0
-        return (like(dx, M), like(dx, M, 2) if taps else like(dx, 0),
+        return (like(dx, M), like(dx, M, 2) if taps else like(dx, 0, 2),
                 like(dx, M, dtype=torch.int64) if taps else like(dx, 0, dtype=torch.int64))
 
     @register_fake("difftex::box2")
@@ -318,8 +334,7 @@ def _register_fakes() -> None:
     @register_fake("difftex::ewa_backward")
     def _(levels, uv, sigma, minor, scale, D, grad, full_h, full_w, wrap_u, wrap_v, border, d_grad, need_levels,
           need_uv, need_ellipse, need_D):
-        return ([torch.empty_like(t) for t in levels] if need_levels else [None] * len(levels),
-                torch.empty_like(uv) if need_uv else None,
+        return (level_grads(levels, uv.dtype), torch.empty_like(uv) if need_uv else None,
                 *[torch.empty_like(t) if need_ellipse else None for t in (sigma, minor, scale)],
                 torch.empty_like(D) if need_D else None)
 
@@ -370,16 +385,16 @@ def _register_fakes() -> None:
 
     @register_fake("difftex::cube_read_backward")
     def _(levels, ring_idx, ring_w, face, uv, D, grad, nearest, d_grad, need_levels, need_uv, need_D):
-        return ([torch.empty_like(t) for t in levels] if need_levels else [None] * len(levels),
-                torch.empty_like(uv) if need_uv else None, torch.empty_like(D) if need_D and D.numel() else None)
+        return (level_grads(levels, uv.dtype), torch.empty_like(uv) if need_uv else None,
+                torch.empty_like(D) if need_D and D.numel() else None)
 
     @register_fake("difftex::sat_forward")
     def _(texture, pu, cu, pv, cv, jacobians, coef_grads):
         C, M = texture.shape[0], pu.shape[0]
         out = [like(pu, C, M, dtype=torch.float64)]
         if jacobians:
-            out += [like(pu, C, M, pu.shape[1], dtype=torch.float64)] * 2
-            out += [like(pu, C, M, pv.shape[1], dtype=torch.float64)] * 2
+            out += [like(pu, C, M, pu.shape[1], dtype=torch.float64) for _ in range(2)]
+            out += [like(pu, C, M, pv.shape[1], dtype=torch.float64) for _ in range(2)]
         return out
 
     @register_fake("difftex::sat_backward")
@@ -389,7 +404,16 @@ def _register_fakes() -> None:
     @register_fake("difftex::ripmap_build")
     def _(texture, n_u, n_v, wanted):
         C, H, W = texture.shape
-        return [like(texture, C, -(-H // 2 ** j), -(-W // 2 ** i)) for j in range(n_v) for i in range(n_u)]
+        # The wanted levels and those on their way (column 0 up to row j, then row j up to column i); level
+        # (0, 0) comes back as None where it is the texture itself (contiguous).
+        built = set()
+        for j in range(n_v):
+            for i in range(n_u):
+                if wanted[j * n_u + i]:
+                    built |= {(0, r) for r in range(j + 1)} | {(c, j) for c in range(i + 1)}
+        return [like(texture, C, -(-H // 2 ** j), -(-W // 2 ** i))
+                if (i, j) in built and not (i == j == 0 and texture.is_contiguous()) else None
+                for j in range(n_v) for i in range(n_u)]
 
     @register_fake("difftex::ripmap_adjoint")
     def _(grads, n_u, n_v, H, W):
@@ -403,7 +427,5 @@ def _register_fakes() -> None:
 
     @register_fake("difftex::ripmap_read_backward")
     def _(levels, n_u, uv, Du, Dv, grad, wrap_u, wrap_v, border, d_grad, need_levels, need_uv, need_D):
-        return ([torch.empty_like(t) if t.numel() else None for t in levels] if need_levels
-                else [None] * len(levels),
-                torch.empty_like(uv) if need_uv else None, torch.empty_like(Du) if need_D else None,
+        return (level_grads(levels, uv.dtype), torch.empty_like(uv) if need_uv else None, torch.empty_like(Du) if need_D else None,
                 torch.empty_like(Dv) if need_D else None)

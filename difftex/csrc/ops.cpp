@@ -36,6 +36,32 @@ OptTensors opts(const std::vector<Tensor>& ts) {
   return out;
 }
 
+// A backward's level gradients as a list of tensors: where a level was not read (or not asked for), a
+// tensor with no rows ([0, ...] of that level's other sizes), which difftex/_native.py turns into None. Its
+// fake implementation can then give every level a gradient whose first size is data-dependent.
+std::vector<Tensor> level_list(const std::vector<Tensor>& gl, const std::vector<std::vector<int64_t>>& shapes,
+                               ScalarType dtype) {
+  std::vector<Tensor> out;
+  out.reserve(gl.size());
+  for (size_t k = 0; k < gl.size(); ++k) {
+    if (gl[k].defined()) {
+      out.push_back(gl[k]);
+    } else {
+      std::vector<int64_t> s = shapes[k];
+      if (s.empty()) s.push_back(0);
+      s[0] = 0;
+      out.push_back(empty(s, dtype));
+    }
+  }
+  return out;
+}
+
+std::vector<std::vector<int64_t>> shapes_of(const std::vector<Tensor>& ts) {
+  std::vector<std::vector<int64_t>> out;
+  for (const auto& t : ts) out.push_back(t.sizes().vec());
+  return out;
+}
+
 ReadOptions read_options(int64_t wrap_u, int64_t wrap_v, double border, bool nearest, bool d_grad) {
   DT_CHECK(wrap_u >= REPEAT && wrap_u <= BORDER, "difftex: wrap_u must be a wrap code 0-3, got ", wrap_u);
   DT_CHECK(wrap_v >= REPEAT && wrap_v <= BORDER, "difftex: wrap_v must be a wrap code 0-3, got ", wrap_v);
@@ -48,14 +74,15 @@ Tensor taps_forward(std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis
   return forward(std::move(levels), uv, D, axis, count, read_options(wrap_u, wrap_v, border, nearest, d_grad));
 }
 
-std::tuple<OptTensors, OptTensor, OptTensor, OptTensor> taps_backward(
+std::tuple<std::vector<Tensor>, OptTensor, OptTensor, OptTensor> taps_backward(
     std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis, Tensor count, Tensor grad, int64_t wrap_u,
     int64_t wrap_v, double border, bool nearest, bool d_grad, bool need_levels, bool need_uv, bool need_D,
     bool need_axis) {
+  const auto shapes = shapes_of(levels);
   auto [gl, guv, gD, gax] = backward(std::move(levels), uv, D, axis, count, grad,
                                      read_options(wrap_u, wrap_v, border, nearest, d_grad),
                                      TapNeeds{need_levels, need_uv, need_D, need_axis});
-  return {opts(gl), opt(guv), opt(gD), opt(gax)};
+  return {level_list(gl, shapes, uv.scalar_type()), opt(guv), opt(gD), opt(gax)};
 }
 
 // front.cpp
@@ -75,15 +102,16 @@ Tensor ewa_forward(std::vector<Tensor> levels, Tensor uv, Tensor sigma, Tensor m
              read_options(wrap_u, wrap_v, border, false, d_grad));
 }
 
-std::tuple<OptTensors, OptTensor, OptTensor, OptTensor, OptTensor, OptTensor> ewa_backward_op(
+std::tuple<std::vector<Tensor>, OptTensor, OptTensor, OptTensor, OptTensor, OptTensor> ewa_backward_op(
     std::vector<Tensor> levels, Tensor uv, Tensor sigma, Tensor minor, Tensor scale, Tensor D, Tensor grad,
     int64_t full_h, int64_t full_w, int64_t wrap_u, int64_t wrap_v, double border, bool d_grad, bool need_levels,
     bool need_uv, bool need_ellipse, bool need_D) {
+  const auto shapes = shapes_of(levels);
   auto [gl, guv, gsig, gmin, gsc, gD] =
       ewa_backward(std::move(levels), uv, sigma, minor, scale, D, grad, full_h, full_w,
                    read_options(wrap_u, wrap_v, border, false, d_grad),
                    EwaNeeds{need_levels, need_uv, need_ellipse, need_D});
-  return {opts(gl), opt(guv), opt(gsig), opt(gmin), opt(gsc), opt(gD)};
+  return {level_list(gl, shapes, uv.scalar_type()), opt(guv), opt(gsig), opt(gmin), opt(gsc), opt(gD)};
 }
 
 // single.cpp
@@ -136,12 +164,13 @@ Tensor cube_read_op(std::vector<Tensor> levels, std::vector<Tensor> ring_idx, st
   return cube_read(std::move(levels), std::move(ring_idx), std::move(ring_w), face, uv, D, nearest, d_grad);
 }
 
-std::tuple<OptTensors, OptTensor, OptTensor> cube_read_backward_op(
+std::tuple<std::vector<Tensor>, OptTensor, OptTensor> cube_read_backward_op(
     std::vector<Tensor> levels, std::vector<Tensor> ring_idx, std::vector<Tensor> ring_w, Tensor face, Tensor uv,
     Tensor D, Tensor grad, bool nearest, bool d_grad, bool need_levels, bool need_uv, bool need_D) {
+  const auto shapes = shapes_of(levels);
   auto [gl, guv, gD] = cube_read_backward(std::move(levels), std::move(ring_idx), std::move(ring_w), face, uv, D,
                                           grad, nearest, d_grad, need_levels, need_uv, need_D);
-  return {opts(gl), opt(guv), opt(gD)};
+  return {level_list(gl, shapes, uv.scalar_type()), opt(guv), opt(gD)};
 }
 
 // sat.cpp
@@ -157,11 +186,22 @@ Tensor sat_backward_op(Tensor texture, Tensor pu, Tensor cu, Tensor pv, Tensor c
 // ripmap.cpp
 OptTensors ripmap_build_op(Tensor texture, int64_t n_u, int64_t n_v, std::vector<int64_t> wanted) {
   std::vector<bool> w(wanted.begin(), wanted.end());
-  return opts(ripmap_build(texture, n_u, n_v, std::move(w)));
+  OptTensors out = opts(ripmap_build(texture, n_u, n_v, std::move(w)));
+  // Level (0, 0) is the texture itself where it is contiguous: an output may not alias an input, so None
+  // comes back and difftex/_native.py puts the texture there.
+  if (!out.empty() && out[0].has_value() && out[0]->data_ptr() == texture.data_ptr()) out[0] = std::nullopt;
+  return out;
 }
 
 Tensor ripmap_adjoint_op(std::vector<Tensor> grads, int64_t n_u, int64_t n_v, int64_t H, int64_t W) {
-  return ripmap_adjoint(std::move(grads), n_u, n_v, H, W);
+  std::vector<const void*> inputs;
+  for (const auto& g : grads) inputs.push_back(g.defined() ? g.data_ptr() : nullptr);
+  Tensor out = ripmap_adjoint(std::move(grads), n_u, n_v, H, W);
+  // The sums are formed in the levels' gradients (the schema marks them mutated); where the result is one of
+  // them (a texture with no level above its own), a copy: an output may not alias an input.
+  for (const void* p : inputs)
+    if (p != nullptr && p == out.data_ptr()) return torch::stable::clone(out);
+  return out;
 }
 
 Tensor ripmap_read_op(std::vector<Tensor> levels, int64_t n_u, Tensor uv, Tensor Du, Tensor Dv, int64_t wrap_u,
@@ -169,13 +209,14 @@ Tensor ripmap_read_op(std::vector<Tensor> levels, int64_t n_u, Tensor uv, Tensor
   return ripmap_read(std::move(levels), n_u, uv, Du, Dv, read_options(wrap_u, wrap_v, border, false, d_grad));
 }
 
-std::tuple<OptTensors, OptTensor, OptTensor, OptTensor> ripmap_read_backward_op(
+std::tuple<std::vector<Tensor>, OptTensor, OptTensor, OptTensor> ripmap_read_backward_op(
     std::vector<Tensor> levels, int64_t n_u, Tensor uv, Tensor Du, Tensor Dv, Tensor grad, int64_t wrap_u,
     int64_t wrap_v, double border, bool d_grad, bool need_levels, bool need_uv, bool need_D) {
+  const auto shapes = shapes_of(levels);
   auto [gl, guv, gu, gv] =
       ripmap_read_backward(std::move(levels), n_u, uv, Du, Dv, grad,
                            read_options(wrap_u, wrap_v, border, false, d_grad), need_levels, need_uv, need_D);
-  return {opts(gl), opt(guv), opt(gu), opt(gv)};
+  return {level_list(gl, shapes, uv.scalar_type()), opt(guv), opt(gu), opt(gv)};
 }
 
 }  // namespace
@@ -188,7 +229,7 @@ STABLE_TORCH_LIBRARY(difftex, m) {
         "float border, bool nearest, bool d_grad) -> Tensor");
   m.def("taps_backward(Tensor[] levels, Tensor uv, Tensor D, Tensor axis, Tensor count, Tensor grad, int wrap_u, "
         "int wrap_v, float border, bool nearest, bool d_grad, bool need_levels, bool need_uv, bool need_D, "
-        "bool need_axis) -> (Tensor?[], Tensor?, Tensor?, Tensor?)");
+        "bool need_axis) -> (Tensor[], Tensor?, Tensor?, Tensor?)");
   m.def("tap_front(Tensor dx, Tensor dy, Tensor bias, float bias0, int H, int W, int levels, int kind, "
         "float max_aniso, float tolerance) -> (Tensor, Tensor, Tensor)");
   m.def("box2(Tensor x) -> Tensor");
@@ -198,7 +239,7 @@ STABLE_TORCH_LIBRARY(difftex, m) {
   m.def("ewa_backward(Tensor[] levels, Tensor uv, Tensor sigma, Tensor minor, Tensor scale, Tensor D, "
         "Tensor grad, int full_h, int full_w, int wrap_u, int wrap_v, float border, bool d_grad, "
         "bool need_levels, bool need_uv, bool need_ellipse, bool need_D) "
-        "-> (Tensor?[], Tensor?, Tensor?, Tensor?, Tensor?, Tensor?)");
+        "-> (Tensor[], Tensor?, Tensor?, Tensor?, Tensor?, Tensor?)");
   m.def("sample_forward(Tensor texture, Tensor uv, int kind, int wrap_u, int wrap_v, float border) -> Tensor");
   m.def("sample_backward(Tensor texture, Tensor uv, Tensor grad, int kind, int wrap_u, int wrap_v, float border, "
         "bool need_texture, bool need_uv) -> (Tensor?, Tensor?)");
@@ -215,17 +256,17 @@ STABLE_TORCH_LIBRARY(difftex, m) {
         "bool nearest, bool d_grad) -> Tensor");
   m.def("cube_read_backward(Tensor[] levels, Tensor[] ring_idx, Tensor[] ring_w, Tensor face, Tensor uv, Tensor D, "
         "Tensor grad, bool nearest, bool d_grad, bool need_levels, bool need_uv, bool need_D) "
-        "-> (Tensor?[], Tensor?, Tensor?)");
+        "-> (Tensor[], Tensor?, Tensor?)");
   m.def("sat_forward(Tensor texture, Tensor pu, Tensor cu, Tensor pv, Tensor cv, bool jacobians, bool coef_grads) "
         "-> Tensor[]");
   m.def("sat_backward(Tensor texture, Tensor pu, Tensor cu, Tensor pv, Tensor cv, Tensor grad) -> Tensor");
   m.def("ripmap_build(Tensor texture, int n_u, int n_v, int[] wanted) -> Tensor?[]");
-  m.def("ripmap_adjoint(Tensor[] grads, int n_u, int n_v, int H, int W) -> Tensor");
+  m.def("ripmap_adjoint(Tensor(a!)[] grads, int n_u, int n_v, int H, int W) -> Tensor");
   m.def("ripmap_read(Tensor[] levels, int n_u, Tensor uv, Tensor Du, Tensor Dv, int wrap_u, int wrap_v, "
         "float border, bool d_grad) -> Tensor");
   m.def("ripmap_read_backward(Tensor[] levels, int n_u, Tensor uv, Tensor Du, Tensor Dv, Tensor grad, int wrap_u, "
         "int wrap_v, float border, bool d_grad, bool need_levels, bool need_uv, bool need_D) "
-        "-> (Tensor?[], Tensor?, Tensor?, Tensor?)");
+        "-> (Tensor[], Tensor?, Tensor?, Tensor?)");
 }
 
 STABLE_TORCH_LIBRARY_IMPL(difftex, CPU, m) {
