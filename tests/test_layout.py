@@ -140,10 +140,12 @@ def test_public_names_are_kept():
     missing = sorted(n for n in PUBLIC if not hasattr(difftex, n))
     assert not missing, f"difftex lost public names: {missing}"
     assert set(difftex.__all__) == PUBLIC
-    for name in ("direction_to_equirect_uv", "equirect_uv_to_direction", "direction_to_cube", "cube_to_direction",
-                 "planar_uv", "texture_matrix", "uv_transform", "EPS", "CUBE_FACES"):
-        assert getattr(difftex.mapping, name) is not None  # difftex.mapping's names, envmap's included
-    assert difftex.mapping.direction_to_cube is difftex.envmap.direction_to_cube
+    for name in ("planar_uv", "texture_matrix", "uv_transform", "EPS", "CUBE_FACES"):
+        assert getattr(difftex.mapping, name) is not None
+    # The environment-map directions live in difftex.envmap (and at the top level) only: mapping, a floor
+    # below envmap, no longer re-exports them (no import runs back up a floor).
+    assert difftex.direction_to_cube is difftex.envmap.direction_to_cube
+    assert not hasattr(difftex.mapping, "direction_to_cube")
     with pytest.raises(AttributeError, match="has no attribute 'nope'"):
         difftex.mapping.nope
     for name in ("look_at", "perspective", "orthographic", "transform"):

@@ -42,16 +42,4 @@ from .matrix import texture_matrix, uv_transform
 from .uv import box_uv, cylindrical_uv, normal_uv, planar_uv, spherical_uv
 
 __all__ = ["EPS", "CUBE_FACES", "planar_uv", "cylindrical_uv", "spherical_uv", "box_uv", "normal_uv", "texture_matrix",
-           "uv_transform", "direction_to_equirect_uv", "equirect_uv_to_direction", "direction_to_cube",
-           "cube_to_direction"]
-
-# The environment-map directions were ``difftex.mapping`` names before they got ``difftex.envmap``: still
-# reachable here, imported on first use (an eager import would make the two packages import each other).
-_ENVMAP = ("direction_to_equirect_uv", "equirect_uv_to_direction", "direction_to_cube", "cube_to_direction")
-
-
-def __getattr__(name: str):
-    if name in _ENVMAP:
-        from ..envmap import directions
-        return getattr(directions, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+           "uv_transform"]

@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from difftex import envmap as E
 from difftex import mapping as M
 
 F64 = torch.float64
@@ -33,8 +34,8 @@ MAPPINGS = {
     "cylindrical_tilted": lambda p, **k: M.cylindrical_uv(p, (0.0, 0.0, 0.0), (0.3, 1.0, 0.2), **k),
     "spherical": lambda p, **k: M.spherical_uv(p, (0.1, 0.2, -0.1), **k),
     "normal": lambda p, **k: M.normal_uv(p, **({"normals_dx": k["points_dx"], "normals_dy": k["points_dy"]} if k else {})),
-    "equirect": lambda p, **k: M.direction_to_equirect_uv(p, **({"dirs_dx": k["points_dx"], "dirs_dy": k["points_dy"]} if k else {})),
-    "cube": lambda p, **k: (lambda r: r[1] if not k else r[1:])(M.direction_to_cube(p, **({"dirs_dx": k["points_dx"], "dirs_dy": k["points_dy"]} if k else {}))),
+    "equirect": lambda p, **k: E.direction_to_equirect_uv(p, **({"dirs_dx": k["points_dx"], "dirs_dy": k["points_dy"]} if k else {})),
+    "cube": lambda p, **k: (lambda r: r[1] if not k else r[1:])(E.direction_to_cube(p, **({"dirs_dx": k["points_dx"], "dirs_dy": k["points_dy"]} if k else {}))),
     "box": lambda p, **k: M.box_uv(p, torch.tensor([0.2, -1.0, 0.3], dtype=p.dtype, device=p.device), center=(0.1, 0.0, 0.0), size=2.5, **k),
 }
 
@@ -110,18 +111,18 @@ def test_normal_uv_is_spherical_of_normal():
 
 
 def test_equirect_convention_and_inverse():
-    uv = M.direction_to_equirect_uv(AXES)
+    uv = E.direction_to_equirect_uv(AXES)
     #            +x           -x            +y (up)      -y           +z (seam)    -z (front)
     expected = [[0.75, 0.5], [0.25, 0.5], [0.5, 0.0], [0.5, 1.0], [1.0, 0.5], [0.5, 0.5]]
     assert torch.allclose(uv, torch.tensor(expected, dtype=F64), atol=1e-15)
     d = torch.nn.functional.normalize(torch.randn(100, 3, generator=_gen(4), dtype=F64), dim=-1)
-    assert torch.allclose(M.equirect_uv_to_direction(M.direction_to_equirect_uv(d)), d, atol=1e-13)
+    assert torch.allclose(E.equirect_uv_to_direction(E.direction_to_equirect_uv(d)), d, atol=1e-13)
     uv = torch.rand(100, 2, generator=_gen(5), dtype=F64) * 0.98 + 0.01
-    assert torch.allclose(M.direction_to_equirect_uv(M.equirect_uv_to_direction(uv)), uv, atol=1e-13)
+    assert torch.allclose(E.direction_to_equirect_uv(E.equirect_uv_to_direction(uv)), uv, atol=1e-13)
 
 
 def test_cube_faces_centres_and_orientation():
-    face, uv = M.direction_to_cube(AXES * 3.0)
+    face, uv = E.direction_to_cube(AXES * 3.0)
     assert face.tolist() == [0, 1, 2, 3, 4, 5]
     assert torch.equal(uv, torch.full((6, 2), 0.5, dtype=F64))
     assert M.CUBE_FACES == ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
@@ -129,13 +130,13 @@ def test_cube_faces_centres_and_orientation():
     dirs = torch.tensor([[1, -1, -1], [-1, -1, 1], [1, 1, 1], [1, -1, -1], [1, -1, 1], [-1, -1, -1]], dtype=F64)
     # add a bias on the major axis so the face is unambiguous
     dirs = dirs * 0.5 + AXES * 0.5
-    face, uv = M.direction_to_cube(dirs)
+    face, uv = E.direction_to_cube(dirs)
     assert face.tolist() == [0, 1, 2, 3, 4, 5]
     assert torch.allclose(uv, torch.full((6, 2), 0.75, dtype=F64), atol=1e-15)
     # round trip through cube_to_direction
     d = torch.randn(200, 3, generator=_gen(6), dtype=F64)
-    face, uv = M.direction_to_cube(d)
-    back = M.cube_to_direction(face, uv)
+    face, uv = E.direction_to_cube(d)
+    back = E.cube_to_direction(face, uv)
     assert torch.allclose(back, d / d.abs().amax(dim=-1, keepdim=True), atol=1e-14)
 
 
@@ -148,7 +149,7 @@ def test_box_uv_faces_and_layouts():
     face_n = torch.argmax(d.abs(), dim=-1)
     normals = torch.zeros_like(d).scatter(-1, face_n[:, None], torch.gather(d, -1, face_n[:, None]).sign())
     uv = M.box_uv(c + 1.5 * d, normals, center=c, size=3.0)
-    face, uv_cube = M.direction_to_cube(d)
+    face, uv_cube = E.direction_to_cube(d)
     assert torch.allclose(uv, uv_cube, atol=1e-14)
     # the face comes from the normal, not the position: a point on the +X side
     # with a +Y normal is projected along y
@@ -185,8 +186,8 @@ def test_devices(device):
         assert all(t.device == p.device and t.dtype == F64 for t in out), name
     uv = M.box_uv(p, p, layout="atlas")
     assert uv.device == p.device
-    face, _ = M.direction_to_cube(p)
-    assert M.cube_to_direction(face, torch.full((10, 2), 0.5, device=device)).device == p.device
+    face, _ = E.direction_to_cube(p)
+    assert E.cube_to_direction(face, torch.full((10, 2), 0.5, device=device)).device == p.device
     m = M.uv_transform(angle=torch.tensor(0.5, device=device))
     assert M.texture_matrix(torch.rand(10, 2, device=device), m).device == p.device
 
@@ -325,9 +326,9 @@ def test_pole_values():
     uv, dx, _ = M.spherical_uv(SINGULAR[:3], points_dx=ones, points_dy=ones)
     assert uv.tolist() == [[0.5, 0.0], [0.5, 1.0], [0.5, 0.5]]
     assert dx.tolist() == [[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]]
-    _, cube_uv = M.direction_to_cube(torch.zeros(1, 3, dtype=F64))
+    _, cube_uv = E.direction_to_cube(torch.zeros(1, 3, dtype=F64))
     assert cube_uv.tolist() == [[0.5, 0.5]]
-    assert M.direction_to_equirect_uv(torch.zeros(1, 3, dtype=F64)).tolist() == [[0.5, 0.5]]
+    assert E.direction_to_equirect_uv(torch.zeros(1, 3, dtype=F64)).tolist() == [[0.5, 0.5]]
 
 
 def test_near_pole_derivatives_are_exact_outside_eps():
@@ -365,9 +366,9 @@ def test_bad_inputs():
     with pytest.raises(ValueError, match=r"normals must have shape"):
         M.normal_uv(torch.zeros(3, 2))
     with pytest.raises(ValueError, match=r"dirs must have shape"):
-        M.direction_to_cube(torch.zeros(2, 4))
+        E.direction_to_cube(torch.zeros(2, 4))
     with pytest.raises(ValueError, match=r"dirs must have shape"):
-        M.direction_to_equirect_uv(torch.zeros(2, 2))
+        E.direction_to_equirect_uv(torch.zeros(2, 2))
     with pytest.raises(ValueError, match="layout must be 'shared' or 'atlas'"):
         M.box_uv(p, p, layout="cross")
     with pytest.raises(ValueError, match=r"normals must have shape"):
@@ -381,7 +382,7 @@ def test_bad_inputs():
     with pytest.raises(ValueError, match=r"shift must have shape"):
         M.uv_transform(shift=1.0)
     with pytest.raises(ValueError, match=r"face must have shape"):
-        M.cube_to_direction(torch.zeros(3, dtype=torch.long), torch.zeros(4, 2))
+        E.cube_to_direction(torch.zeros(3, dtype=torch.long), torch.zeros(4, 2))
     # Parameters and batches that do not broadcast: ValueError naming the argument.
     with pytest.raises(ValueError, match=r"origin must broadcast with points \(4, 3\), got \(5, 3\)"):
         M.planar_uv(p, torch.zeros(5, 3), (1.0, 0, 0), (0, 1.0, 0))
@@ -396,9 +397,9 @@ def test_bad_inputs():
     uv2 = torch.full((3, 2), 0.5)
     for face in ([-1, 0, 1], [0, 6, 2]):
         with pytest.raises(ValueError, match=r"face must hold values 0\.\.5, got values in"):
-            M.cube_to_direction(torch.tensor(face), uv2)
+            E.cube_to_direction(torch.tensor(face), uv2)
     with pytest.raises(TypeError, match="face must be an integer tensor.*bool"):
-        M.cube_to_direction(torch.ones(3, dtype=torch.bool), uv2)
+        E.cube_to_direction(torch.ones(3, dtype=torch.bool), uv2)
     with pytest.raises(TypeError, match="dtype must be a floating dtype, got torch.int64"):
         M.uv_transform(dtype=torch.int64)
 
