@@ -152,3 +152,55 @@ def test_public_names_are_kept():
         assert callable(getattr(difftex.camera, name))
     for name in ("load_mesh", "load_texture", "save_image", "data_path", "Mesh", "DATA_DIR"):
         assert hasattr(difftex.io, name)
+
+
+# The floors of the package, lowest first: a module imports only from its own floor or below, so each floor
+# can be read, tested and replaced without the ones above it. Subpackages (and top-level modules) not named
+# here fail the test until they are given a floor.
+FLOORS = [
+    {"difftex._native", "difftex._checks", "difftex.backend", "difftex.metrics"},  # the ground: kernels, checks
+    {"difftex.mapping"},
+    {"difftex.geometry"},
+    {"difftex.texture"},
+    {"difftex.envmap"},
+    {"difftex.shading", "difftex.io"},
+    {"difftex.nn", "difftex.nvdiffrast", "difftex.testing", "difftex"},
+]
+
+
+def _floor(name: str) -> int:
+    area = _subpackage(name)
+    for i, names in enumerate(FLOORS):
+        if area in names:
+            return i
+    raise AssertionError(f"{name} is on no floor: add {area} to FLOORS")
+
+
+def _all_imports(name: str) -> list[tuple[str, int]]:
+    """(imported difftex module, line) of every import in ``name``, function bodies included."""
+    tree = ast.parse(MODULES[name].read_text(), str(MODULES[name]))
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.extend((a.name, node.lineno) for a in node.names if a.name.split(".")[0] == "difftex")
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = _package_of(name).split(".")
+                target = ".".join(base[:len(base) - node.level + 1] + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if target.split(".")[0] == "difftex":
+                modules = [f"{target}.{a.name}" for a in node.names if f"{target}.{a.name}" in MODULES]
+                out.extend((m, node.lineno) for m in modules or [target])
+    return out
+
+
+def test_no_import_runs_up_a_floor():
+    up = []
+    for name in MODULES:
+        if name == "difftex":  # the package's face re-exports every floor
+            continue
+        for target, line in _all_imports(name):
+            if target != "difftex" and _floor(target) > _floor(name):
+                up.append(f"{name}:{line} imports {target} (floor {_floor(target)} > {_floor(name)})")
+    assert not up, "imports up a floor:\n" + "\n".join(up)
