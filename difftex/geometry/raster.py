@@ -713,20 +713,34 @@ def _bary_at(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, T
 
     ``v`` [N, 3, 4] clip-space corners, ``x``, ``y`` [N] NDC sample points.
     Returns bary [N, 3], depth [N], d(bary)/d(column) [N, 3],
-    d(bary)/d(row) [N, 3]. Differentiable with respect to ``v``; every
-    division is guarded so that degenerate input gives finite values and
-    finite gradients (the "double where" pattern).
+    d(bary)/d(row) [N, 3] in ``v``'s dtype. Differentiable with respect to
+    ``v``; every division is guarded so that degenerate input gives finite
+    values and finite gradients (the "double where" pattern).
+
+    Computed in float64 whatever the dtype (one rounding at the end for
+    float32) in the pixel-centred frame: the corners are sheared by
+    ``(X, Y, W) -> (X - x W, Y - y W, W)``, which has determinant 1 and moves
+    the pixel to ``(0, 0, 1)``, so the edge function ``e_i = det[h_j, h_k, p]``
+    is the 2D cross product ``X'_j Y'_k - Y'_j X'_k`` and its slopes are
+    ``a_i = de_i/dx = Y'_j W_k - W_j Y'_k``, ``b_i = de_i/dy = W_j X'_k -
+    X'_j W_k``. On a small or distant triangle these are products of small
+    numbers; the expanded ``a x + b y + c`` cancels large terms there and
+    lost every digit on sub-pixel triangles (issue 40). The native kernel
+    (raster.cpp ``Tri``) computes the same formula.
     """
+    dtype = v.dtype
+    v = v.to(torch.float64)
+    x, y = x.to(torch.float64), y.to(torch.float64)
     v = pow2_normalise(v, v.detach().abs().amax(dim=(-1, -2), keepdim=True))  # invariant: homogeneous scale
+    X, Y, Z, Wc = v.unbind(-1)  # [N, 3] each
+    Xs = X - x[:, None] * Wc
+    Ys = Y - y[:, None] * Wc
     # Corner j and k of edge i (opposite corner i), all three edges at once.
-    vj = v.roll(-1, dims=1)  # roll: much cheaper than fancy indexing on CPU
-    vk = v.roll(-2, dims=1)
-    Xj, Yj, _, Wj = vj.unbind(-1)
-    Xk, Yk, _, Wk = vk.unbind(-1)
-    a = Yj * Wk - Wj * Yk  # (h_j x h_k) . (x, y, 1) = a x + b y + c
+    Xj, Yj, Wj = Xs.roll(-1, dims=1), Ys.roll(-1, dims=1), Wc.roll(-1, dims=1)  # roll: cheaper than fancy indexing
+    Xk, Yk, Wk = Xs.roll(-2, dims=1), Ys.roll(-2, dims=1), Wc.roll(-2, dims=1)
+    e = Xj * Yk - Yj * Xk  # [N, 3]
+    a = Yj * Wk - Wj * Yk
     b = Wj * Xk - Xj * Wk
-    c = Xj * Yk - Yj * Xk
-    e = a * x[:, None] + b * y[:, None] + c  # [N, 3]
     s = e.sum(-1)
     ok = s != 0
     s_safe = torch.where(ok, s, torch.ones_like(s))
@@ -734,8 +748,8 @@ def _bary_at(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, T
     # d(bary_i)/dx = (a_i - bary_i * sum(a)) / sum(e), same for y with b.
     dx = (a - bary * a.sum(-1, keepdim=True)) / s_safe[:, None]
     dy = (b - bary * b.sum(-1, keepdim=True)) / s_safe[:, None]
-    zn = (e * v[..., 2]).sum(-1)
-    wn = (e * v[..., 3]).sum(-1)
+    zn = (e * Z).sum(-1)
+    wn = (e * Wc).sum(-1)
     okw = ok & (wn != 0)
     depth = zn / torch.where(okw, wn, torch.ones_like(wn))
     zero3 = torch.zeros_like(bary)
@@ -744,7 +758,7 @@ def _bary_at(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, T
     dx = torch.where(ok[:, None], dx, zero3) * (2.0 / W)
     dy = torch.where(ok[:, None], dy, zero3) * (-2.0 / H)
     depth = torch.where(okw, depth, torch.zeros_like(depth))
-    return bary, depth, dx, dy
+    return bary.to(dtype), depth.to(dtype), dx.to(dtype), dy.to(dtype)
 
 
 def _pixels(pos: Tensor, faces: Tensor, tri_id: Tensor, idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -756,8 +770,10 @@ def _pixels(pos: Tensor, faces: Tensor, tri_id: Tensor, idx: Tensor) -> tuple[Te
     rc = idx - bi * (H * W)
     r = torch.div(rc, W, rounding_mode="floor")
     col = rc - r * W
-    xs = _pixel_centres(W, pos.dtype, pos.device, flip=False)
-    ys = _pixel_centres(H, pos.dtype, pos.device, flip=True)
+    # float64 centres whatever the dtype: _bary_at works in float64 (the
+    # kernel likewise), and a float32 centre is off by up to 6e-8 NDC.
+    xs = _pixel_centres(W, torch.float64, pos.device, flip=False)
+    ys = _pixel_centres(H, torch.float64, pos.device, flip=True)
     # One flat gather (much faster than 2-index advanced indexing on CPU).
     vid = (bi * pos.shape[1])[:, None] + faces.index_select(0, f)
     v = pos.reshape(-1, 4).index_select(0, vid.reshape(-1)).view(-1, 3, 4)
@@ -869,9 +885,13 @@ def rasterize(
     same ids where ``difftex.backend`` chooses it (:func:`depth_peel` peels
     further layers).
 
-    ``bary``, ``depth``, ``bary_dx`` and ``bary_dy`` are differentiable with
-    respect to ``pos`` (the perspective-correct formula); which triangle is
-    visible is not. Their gradients scale as 1 / |corner|: where every corner
+    ``bary``, ``depth``, ``bary_dx`` and ``bary_dy`` are computed in float64
+    whatever the dtype, from edge functions of the corners sheared to a
+    pixel-centred frame (no cancellation on small or distant triangles), so
+    float32 values are the exact ones of the given corners rounded once
+    (|bary - exact| <= 6e-8 for barycentrics within [0, 1]). They are
+    differentiable with respect to ``pos`` (the perspective-correct formula);
+    which triangle is visible is not. Their gradients scale as 1 / |corner|: where every corner
     of a visible triangle is subnormal (below 1.2e-38 in float32), the
     values are still exact but the position gradients overflow the dtype
     (inf, or NaN where two overflows meet). Raises TypeError on bad dtypes, ValueError naming the
