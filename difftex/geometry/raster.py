@@ -47,6 +47,7 @@ top of the image (NDC y = +1), pixel ``(r, c)`` has its centre at NDC
 
 from __future__ import annotations
 
+import functools
 import itertools
 
 from dataclasses import dataclass, field
@@ -93,9 +94,10 @@ class Fragments:
         depth: [B, H, W] NDC z of the visible surface (smaller is nearer);
             zero on background.
         bary_dx: [B, H, W, 3] d(bary) / d(pixel column), analytic (2/W
-            times d(bary)/d(NDC x)).
+            times d(bary)/d(NDC x)); None from ``rasterize(...,
+            derivatives=False)``.
         bary_dy: [B, H, W, 3] d(bary) / d(pixel row), analytic (rows grow
-            downwards, so this is -2/H times d(bary)/d(NDC y)).
+            downwards, so this is -2/H times d(bary)/d(NDC y)); None likewise.
 
     ``bary``, ``depth``, ``bary_dx`` and ``bary_dy`` are differentiable with
     respect to the clip-space positions given to :func:`rasterize`.
@@ -104,11 +106,12 @@ class Fragments:
     tri_id: Tensor
     bary: Tensor
     depth: Tensor
-    bary_dx: Tensor
-    bary_dy: Tensor
-    # (flat index of covered pixels, bary, bary_dx, bary_dy there), set by
-    # rasterize; not an init field, so dataclasses.replace() drops it.
-    _compact: Optional[tuple[Tensor, Tensor, Tensor, Tensor]] = field(
+    bary_dx: Optional[Tensor]
+    bary_dy: Optional[Tensor]
+    # (flat index of covered pixels, bary, bary_dx, bary_dy there (None
+    # without derivatives)), set by rasterize; not an init field, so
+    # dataclasses.replace() drops it.
+    _compact: Optional[tuple[Tensor, Tensor, Optional[Tensor], Optional[Tensor]]] = field(
         default=None, init=False, repr=False, compare=False
     )
 
@@ -789,7 +792,8 @@ class _NativeFragments(torch.autograd.Function):
 
     Outputs (idx, bary_c, dx_c, dy_c, bary, depth, bary_dx, bary_dy), or with
     ``packed`` nvdiffrast's (idx, rast, db) (rast's depth and id take no
-    gradient). The first-order backward is the kernel's hand-written adjoint
+    gradient); without ``derivatives`` the derivative outputs are empty [0]
+    tensors that nothing reads. The first-order backward is the kernel's hand-written adjoint
     of the same formula, reading the gradients where autograd leaves them;
     under create_graph the dense gradients are gathered at the covered pixels
     and the torch formula :func:`_bary_at` is differentiated there from
@@ -797,8 +801,10 @@ class _NativeFragments(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, pos: Tensor, faces: Tensor, tri_id: Tensor, mod, packed: bool, offset: int):
-        out = mod.raster_fragments(pos.detach(), faces, tri_id, packed=packed, offset=offset)
+    def forward(ctx, pos: Tensor, faces: Tensor, tri_id: Tensor, mod, packed: bool, offset: int,
+                derivatives: bool = True):
+        out = mod.raster_fragments(pos.detach(), faces, tri_id, packed=packed, offset=offset,
+                                   derivatives=derivatives)
         ctx.save_for_backward(pos, faces, tri_id, out[0])
         ctx.packed, ctx.mod = packed, mod
         ctx.mark_non_differentiable(out[0])
@@ -808,7 +814,9 @@ class _NativeFragments(torch.autograd.Function):
     @staticmethod
     def backward(ctx, _gidx: None, *grads: Optional[Tensor]):
         pos, faces, tri_id, idx = ctx.saved_tensors
-        none = (None,) * 6
+        none = (None,) * 7
+        # The empty derivative outputs of a call without derivatives take no gradient.
+        grads = tuple(None if g is None or g.numel() == 0 else g for g in grads)
         if all(g is None for g in grads):
             return none
         if not (torch.is_grad_enabled() and pos.requires_grad):
@@ -852,6 +860,7 @@ def rasterize(
     resolution: Sequence[int],
     *,
     cull_backfaces: bool = False,
+    derivatives: bool = True,
 ) -> Fragments:
     """Rasterize triangles with a z-buffer into per-pixel triangle ids and barycentrics.
 
@@ -865,12 +874,17 @@ def rasterize(
             x = (c + 0.5) / W * 2 - 1, y = 1 - (r + 0.5) / H * 2 (row 0 is the
             top of the image).
         cull_backfaces: drop clockwise (back-facing) triangles.
+        derivatives: compute the screen-space derivatives bary_dx, bary_dy
+            (default). False leaves them None and skips their work and
+            memory (a quarter of the pass's output bytes each): for renders
+            that interpolate no minified texture coordinates (nvdiffrast
+            computes them only on request too).
 
     Returns:
         :class:`Fragments` with tri_id [B, H, W] int64 (-1 = background),
         bary [B, H, W, 3] perspective-correct, depth [B, H, W] NDC z and the
         analytic screen-space derivatives bary_dx, bary_dy [B, H, W, 3] per
-        pixel column / row.
+        pixel column / row (None with ``derivatives=False``).
 
     Visibility: the nearest fragment (smallest NDC z, compared in float64
     whatever the input dtype) wins, equal depths go to the lowest triangle
@@ -899,7 +913,10 @@ def rasterize(
     ValueError naming ``resolution`` and the batch where the per-pixel
     buffers would exceed :data:`MAX_BYTES` (16 GiB by default).
     """
-    return next(visible_layers(pos, faces, resolution, cull_backfaces, fragments_of))
+    if not isinstance(derivatives, bool):
+        raise TypeError(f"rasterize: derivatives must be a bool, got {type(derivatives).__name__}")
+    return next(visible_layers(pos, faces, resolution, cull_backfaces, functools.partial(
+        fragments_of, derivatives=derivatives)))
 
 
 def depth_peel(
@@ -994,20 +1011,21 @@ def visible_layers(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_b
         floor = (zbuf, tri_id[-1].reshape(-1))
 
 
-def fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
+def fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor, derivatives: bool = True) -> Fragments:
     """The differentiable pass: :class:`Fragments` of the triangles ``tri_id`` [B, H, W] names (-1 background).
 
     ``pos`` [B, V, 4] and ``faces`` [F, 3] as checked by :func:`visible_layers`
     (no checks here). bary, depth, bary_dx and bary_dy are differentiable
     with respect to ``pos`` (native forward and first-order backward on the
-    CPU, the torch formula elsewhere and for double backward).
+    CPU, the torch formula elsewhere and for double backward); without
+    ``derivatives`` bary_dx and bary_dy are None and not computed.
     """
     from .. import _native as native
 
     mod = native.kernel(pos)
     if mod is not None:
         idx, bary_c, dx_c, dy_c, bary, depth, bary_dx, bary_dy = _NativeFragments.apply(
-            pos, faces, tri_id, mod, False, 0)
+            pos, faces, tri_id, mod, False, 0, derivatives)
     else:
         B, H, W = tri_id.shape
         idx = torch.nonzero(tri_id.reshape(-1) >= 0).squeeze(1)
@@ -1022,7 +1040,10 @@ def fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
             out.index_put_((idx,), vals)  # in place on fresh zeros: no copy
             return out.view(B, H, W, *k)
 
-        bary, depth, bary_dx, bary_dy = dense(bary_c), dense(depth_c), dense(dx_c), dense(dy_c)
+        bary, depth = dense(bary_c), dense(depth_c)
+        bary_dx, bary_dy = (dense(dx_c), dense(dy_c)) if derivatives else (None, None)
+    if not derivatives:
+        dx_c = dy_c = bary_dx = bary_dy = None
     frags = Fragments(tri_id=tri_id, bary=bary, depth=depth, bary_dx=bary_dx, bary_dy=bary_dy)
     # Covered pixels in compact form for interpolate(): gathering from the
     # dense tensors would cost a dense zero gradient per tensor in backward.
@@ -1030,8 +1051,8 @@ def fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
     return frags
 
 
-def packed_fragments(pos: Tensor, faces: Tensor, tri_id: Tensor,
-                     offset: int) -> Optional[tuple[Tensor, Tensor, Tensor]]:
+def packed_fragments(pos: Tensor, faces: Tensor, tri_id: Tensor, offset: int,
+                     derivatives: bool = True) -> Optional[tuple[Tensor, Tensor, Tensor]]:
     """nvdiffrast's (rast, rast_db) of ``tri_id`` [B, H, W] straight from the native kernel (difftex.nvdiffrast's
     fast path), or None where the kernel does not serve ``pos``.
 
@@ -1039,12 +1060,13 @@ def packed_fragments(pos: Tensor, faces: Tensor, tri_id: Tensor,
     = (db0/dx, db0/dy, db1/dx, db1/dy) per column / row, zeros on background;
     the third tensor is the flat index [N] of the covered pixels.
     b0, b1 and rast_db are differentiable with respect to ``pos``; the depth
-    and id columns are not.
+    and id columns are not. Without ``derivatives`` rast_db is an empty [0]
+    tensor (not computed).
     """
     from .. import _native as native
 
     mod = native.kernel(pos)
     if mod is None:
         return None
-    idx, rast, db = _NativeFragments.apply(pos, faces, tri_id, mod, True, offset)
+    idx, rast, db = _NativeFragments.apply(pos, faces, tri_id, mod, True, offset, derivatives)
     return rast, db, idx

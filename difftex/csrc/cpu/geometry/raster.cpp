@@ -1012,24 +1012,30 @@ struct Tri {
     }
   }
 
-  // Barycentrics ob, d/d(column) odx, d/d(row) ody [3] and the NDC depth at
-  // the NDC point (x, y); (sx, sy) = (2 / W, -2 / H). Zeros where degenerate.
+  // Barycentrics ob, d/d(column) odx, d/d(row) ody [3] (null odx: no
+  // derivatives) and the NDC depth at the NDC point (x, y); (sx, sy) =
+  // (2 / W, -2 / H). Zeros where degenerate.
   template <typename T>
   T eval(double x, double y, double sx, double sy, T* ob, T* odx, T* ody) const {
     double Xs[3], Ys[3], e[3], a[3], b[3];
     edges(x, y, Xs, Ys, e, a, b);
     const double s = e[0] + e[1] + e[2];
     if (s == 0) {
-      for (int i = 0; i < 3; ++i) ob[i] = odx[i] = ody[i] = 0;
+      for (int i = 0; i < 3; ++i) ob[i] = 0;
+      if (odx)
+        for (int i = 0; i < 3; ++i) odx[i] = ody[i] = 0;
       return 0;
     }
-    const double sa = a[0] + a[1] + a[2], sb = b[0] + b[1] + b[2];
-    const double is = 1.0 / s, isx = is * sx, isy = is * sy;
-    for (int i = 0; i < 3; ++i) {
-      const double bi = e[i] * is;
-      ob[i] = T(bi);
-      odx[i] = T((a[i] - bi * sa) * isx);
-      ody[i] = T((b[i] - bi * sb) * isy);
+    const double is = 1.0 / s;
+    for (int i = 0; i < 3; ++i) ob[i] = T(e[i] * is);
+    if (odx) {
+      const double sa = a[0] + a[1] + a[2], sb = b[0] + b[1] + b[2];
+      const double isx = is * sx, isy = is * sy;
+      for (int i = 0; i < 3; ++i) {
+        const double bi = e[i] * is;
+        odx[i] = T((a[i] - bi * sa) * isx);
+        ody[i] = T((b[i] - bi * sb) * isy);
+      }
     }
     const double zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
     const double wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
@@ -1116,7 +1122,7 @@ struct Tri {
 // outputs, zeros on background, and the covered pixels in compact form
 // (flat index order), so no nonzero / gather / scatter on the Python side.
 std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
-                                            bool packed, int64_t offset) {
+                                            bool packed, int64_t offset, bool derivatives) {
   DT_CHECK(pos.is_cpu() && pos.dim() == 3 && pos.size(2) == 4 && faces.dim() == 2 &&
                   faces.size(1) == 3 && faces.scalar_type() == kInt64 && tri_id.dim() == 3 &&
                   tri_id.scalar_type() == kInt64 && tri_id.size(0) == pos.size(0),
@@ -1148,15 +1154,17 @@ std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
   // ones, the bound of a mostly covered image).
   auto dense = [&](IntArrayRef shape, Options o) { return empty(shape, o); };
   std::vector<Tensor> out{idx};
+  // Without derivatives their outputs are empty [0] tensors, never written.
+  auto none = [&] { return empty({0}, opt); };
   if (packed) {
     out.push_back(dense({B, H, W, 4}, opt));  // rast: (b0, b1, depth, id + 1 + offset), 0 on background
-    out.push_back(dense({B, H, W, 4}, opt));  // db: (db0/dX, db0/dY, db1/dX, db1/dY)
+    out.push_back(derivatives ? dense({B, H, W, 4}, opt) : none());  // db: (db0/dX, db0/dY, db1/dX, db1/dY)
   } else {
-    for (auto k : {3, 3, 3}) out.push_back(empty({N, k}, opt));  // compact bary, d/dcolumn, d/drow
+    out.push_back(empty({N, 3}, opt));  // compact bary, d/dcolumn, d/drow
+    for (int k = 0; k < 2; ++k) out.push_back(derivatives ? empty({N, 3}, opt) : none());
     out.push_back(dense({B, H, W, 3}, opt));
     out.push_back(dense({B, H, W}, opt));
-    out.push_back(dense({B, H, W, 3}, opt));
-    out.push_back(dense({B, H, W, 3}, opt));
+    for (int k = 0; k < 2; ++k) out.push_back(derivatives ? dense({B, H, W, 3}, opt) : none());
   }
   DT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "raster_fragments", [&] {
     using T = scalar_t;
@@ -1169,7 +1177,7 @@ std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
     const double hx = 2.0 / double(W), hy = 2.0 / double(H);
     constexpr int64_t kRows = 8;  // rows an item
     dynamic_for((rows + kRows - 1) / kRows, [&](auto&& next_block) {
-      T b[3], dx[3], dy[3];
+      T b[3] = {}, dx[3] = {}, dy[3] = {};
       Tri tri{};  // value-initialised: gcc cannot see that load() runs before the first use
       int64_t loaded = -1;  // the (batch, face) in tri
       for (int64_t blk; (blk = next_block()) >= 0;)
@@ -1184,9 +1192,11 @@ std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
           const size_t m = size_t(end - bg) * sizeof(T);
           if (packed) {
             std::memset(o[0] + 4 * bg, 0, 4 * m);
-            std::memset(o[1] + 4 * bg, 0, 4 * m);
+            if (derivatives) std::memset(o[1] + 4 * bg, 0, 4 * m);
           } else {
-            for (int k : {3, 5, 6}) std::memset(o[k] + 3 * bg, 0, 3 * m);
+            std::memset(o[3] + 3 * bg, 0, 3 * m);
+            if (derivatives)
+              for (int k : {5, 6}) std::memset(o[k] + 3 * bg, 0, 3 * m);
             std::memset(o[4] + bg, 0, m);
           }
         };
@@ -1209,19 +1219,22 @@ std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
             loaded = bi * F + f;
           }
           const double x = (double(col) + 0.5) * hx - 1.0;
-          const T z = tri.eval(x, y, sx, sy, b, dx, dy);
+          const T z = tri.eval(x, y, sx, sy, b, derivatives ? dx : nullptr, dy);
           pidx[n] = p;
           if (packed) {
             T* ra = o[0] + 4 * p;
-            T* db = o[1] + 4 * p;
             ra[0] = b[0], ra[1] = b[1], ra[2] = z, ra[3] = T(f + 1 + offset);
-            db[0] = dx[0], db[1] = dy[0], db[2] = dx[1], db[3] = dy[1];
-          } else {
-            for (int k = 0; k < 3; ++k) {
-              o[0][3 * n + k] = o[3][3 * p + k] = b[k];
-              o[1][3 * n + k] = o[5][3 * p + k] = dx[k];
-              o[2][3 * n + k] = o[6][3 * p + k] = dy[k];
+            if (derivatives) {
+              T* db = o[1] + 4 * p;
+              db[0] = dx[0], db[1] = dy[0], db[2] = dx[1], db[3] = dy[1];
             }
+          } else {
+            for (int k = 0; k < 3; ++k) o[0][3 * n + k] = o[3][3 * p + k] = b[k];
+            if (derivatives)
+              for (int k = 0; k < 3; ++k) {
+                o[1][3 * n + k] = o[5][3 * p + k] = dx[k];
+                o[2][3 * n + k] = o[6][3 * p + k] = dy[k];
+              }
             o[4][p] = z;
           }
           ++n;
