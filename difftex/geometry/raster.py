@@ -30,7 +30,7 @@ over the front triangle near a silhouette; fragments outside
 exactly; equal depths go to the lowest triangle id.
 
 On the CPU the visibility pass runs in the native kernel
-(``difftex/texture/native/csrc/raster.cpp``) where ``difftex.backend``
+(``difftex/csrc/cpu/geometry/raster.cpp``) where ``difftex.backend``
 sends it, with the same rules and the same floating-point operations, so
 both give identical ids; the torch path here is the reference and serves
 CUDA, ``difftex.backend("reference")`` and ``DIFFTEX_NATIVE=0``.
