@@ -724,11 +724,12 @@ def _bary_at(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, T
     float32) in the pixel-centred frame: the corners are sheared by
     ``(X, Y, W) -> (X - x W, Y - y W, W)``, which has determinant 1 and moves
     the pixel to ``(0, 0, 1)``, so the edge function ``e_i = det[h_j, h_k, p]``
-    is the 2D cross product ``X'_j Y'_k - Y'_j X'_k`` and its slopes are
-    ``a_i = de_i/dx = Y'_j W_k - W_j Y'_k``, ``b_i = de_i/dy = W_j X'_k -
-    X'_j W_k``. On a small or distant triangle these are products of small
-    numbers; the expanded ``a x + b y + c`` cancels large terms there and
-    lost every digit on sub-pixel triangles (issue 40). The native kernel
+    is the 2D cross product ``X'_j Y'_k - Y'_j X'_k``: on a small or distant
+    triangle a product of small numbers, where the expanded ``a x + b y + c``
+    cancels large terms and lost every digit on sub-pixel triangles (issue
+    40). The slopes ``a_i = de_i/dx = Y_j W_k - W_j Y_k``, ``b_i = de_i/dy =
+    W_j X_k - X_j W_k`` do not depend on the pixel (from float32 corners
+    both products are exact in float64: one rounding). The native kernel
     (raster.cpp ``Tri``) computes the same formula.
     """
     dtype = v.dtype
@@ -742,8 +743,9 @@ def _bary_at(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, T
     Xj, Yj, Wj = Xs.roll(-1, dims=1), Ys.roll(-1, dims=1), Wc.roll(-1, dims=1)  # roll: cheaper than fancy indexing
     Xk, Yk, Wk = Xs.roll(-2, dims=1), Ys.roll(-2, dims=1), Wc.roll(-2, dims=1)
     e = Xj * Yk - Yj * Xk  # [N, 3]
-    a = Yj * Wk - Wj * Yk
-    b = Wj * Xk - Xj * Wk
+    Xuj, Yuj, Xuk, Yuk = X.roll(-1, dims=1), Y.roll(-1, dims=1), X.roll(-2, dims=1), Y.roll(-2, dims=1)
+    a = Yuj * Wk - Wj * Yuk
+    b = Wj * Xuk - Xuj * Wk
     s = e.sum(-1)
     ok = s != 0
     s_safe = torch.where(ok, s, torch.ones_like(s))

@@ -979,15 +979,17 @@ namespace {
 // input dtype (its float32 outputs are then rounded once, at the end).
 // load() keeps the corners scaled by a power of two (max |coordinate| in
 // [0.5, 1): no overflow, the same ratios); consecutive pixels of a row
-// mostly share a triangle, so it runs once per run of them. Per pixel the
-// corners are sheared to the pixel-centred frame X' = X - x W, Y' = Y - y W
-// (determinant 1, the pixel moves to (0, 0, 1)): the edge functions
-// e_i = det[h_j, h_k, p] = X'_j Y'_k - Y'_j X'_k and their slopes
-// a_i = de_i/dx, b_i = de_i/dy are then products of small numbers on a
-// small or distant triangle, where the expanded a x + b y + c cancels
-// large terms (issue 40: barycentrics off by 1 on sub-pixel triangles).
+// mostly share a triangle, so it runs once per run of them, with the
+// slopes a_i = de_i/dx = Y_j W_k - W_j Y_k, b_i = de_i/dy = W_j X_k - X_j W_k
+// (pixel-independent; from float32 corners both products are exact in
+// double, so one rounding). Per pixel the corners are sheared to the
+// pixel-centred frame X' = X - x W, Y' = Y - y W (determinant 1, the pixel
+// moves to (0, 0, 1)): the edge functions e_i = det[h_j, h_k, p] =
+// X'_j Y'_k - Y'_j X'_k are then products of small numbers on a small or
+// distant triangle, where the expanded a x + b y + c cancels large terms
+// (issue 40: barycentrics off by 1 on sub-pixel triangles).
 struct Tri {
-  double X[3], Y[3], Z[3], Wc[3], sc;
+  double X[3], Y[3], Z[3], Wc[3], a[3], b[3], sa, sb, sc;
 
   template <typename T>
   void load(const T* pos, const int64_t* corner_rows) {
@@ -999,16 +1001,21 @@ struct Tri {
     }
     sc = pow2_scale(m);
     for (int i = 0; i < 3; ++i) X[i] *= sc, Y[i] *= sc, Z[i] *= sc, Wc[i] *= sc;
+    for (int i = 0; i < 3; ++i) {
+      const int j = (i + 1) % 3, k = (i + 2) % 3;
+      a[i] = Y[j] * Wc[k] - Wc[j] * Y[k];
+      b[i] = Wc[j] * X[k] - X[j] * Wc[k];
+    }
+    sa = a[0] + a[1] + a[2];
+    sb = b[0] + b[1] + b[2];
   }
 
-  // The sheared corners and e, a, b at the NDC point (x, y).
-  void edges(double x, double y, double* Xs, double* Ys, double* e, double* a, double* b) const {
+  // The sheared corners and the edge functions e at the NDC point (x, y).
+  void edges(double x, double y, double* Xs, double* Ys, double* e) const {
     for (int i = 0; i < 3; ++i) Xs[i] = X[i] - x * Wc[i], Ys[i] = Y[i] - y * Wc[i];
     for (int i = 0; i < 3; ++i) {
       const int j = (i + 1) % 3, k = (i + 2) % 3;
       e[i] = Xs[j] * Ys[k] - Ys[j] * Xs[k];
-      a[i] = Ys[j] * Wc[k] - Wc[j] * Ys[k];
-      b[i] = Wc[j] * Xs[k] - Xs[j] * Wc[k];
     }
   }
 
@@ -1017,8 +1024,8 @@ struct Tri {
   // (2 / W, -2 / H). Zeros where degenerate.
   template <typename T>
   T eval(double x, double y, double sx, double sy, T* ob, T* odx, T* ody) const {
-    double Xs[3], Ys[3], e[3], a[3], b[3];
-    edges(x, y, Xs, Ys, e, a, b);
+    double Xs[3], Ys[3], e[3];
+    edges(x, y, Xs, Ys, e);
     const double s = e[0] + e[1] + e[2];
     if (s == 0) {
       for (int i = 0; i < 3; ++i) ob[i] = 0;
@@ -1029,7 +1036,6 @@ struct Tri {
     const double is = 1.0 / s;
     for (int i = 0; i < 3; ++i) ob[i] = T(e[i] * is);
     if (odx) {
-      const double sa = a[0] + a[1] + a[2], sb = b[0] + b[1] + b[2];
       const double isx = is * sx, isy = is * sy;
       for (int i = 0; i < 3; ++i) {
         const double bi = e[i] * is;
@@ -1050,11 +1056,10 @@ struct Tri {
   void adjoint(double x, double y, double sx, double sy, const T* gB, const T* gDx, const T* gDy, const T* gZ,
                T* g) const {
     for (int i = 0; i < 12; ++i) g[i] = 0;
-    double Xs[3], Ys[3], e[3], a[3], b[3];
-    edges(x, y, Xs, Ys, e, a, b);
+    double Xs[3], Ys[3], e[3];
+    edges(x, y, Xs, Ys, e);
     const double s = e[0] + e[1] + e[2];
     if (s == 0) return;  // the outputs are the constant 0 there
-    const double sa = a[0] + a[1] + a[2], sb = b[0] + b[1] + b[2];
     const double is = 1.0 / s;
     double ga[3], gb[3], ge[3];
     double gs = 0, gsa = 0, gsb = 0;
@@ -1081,7 +1086,8 @@ struct Tri {
       ge[i] = gbary * is;
       gs -= gbary * bary * is;
     }
-    double gXs[3] = {0, 0, 0}, gYs[3] = {0, 0, 0}, gZc[3] = {0, 0, 0}, gW[3] = {0, 0, 0};
+    double gXs[3] = {0, 0, 0}, gYs[3] = {0, 0, 0}, gX[3] = {0, 0, 0}, gY[3] = {0, 0, 0}, gZc[3] = {0, 0, 0},
+           gW[3] = {0, 0, 0};
     if (gZ) {
       const double zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
       const double wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
@@ -1099,15 +1105,15 @@ struct Tri {
       const double gei = ge[i] + gs, gai = ga[i] + gsa, gbi = gb[i] + gsb;
       // e_i = Xs_j Ys_k - Ys_j Xs_k
       gXs[j] += gei * Ys[k], gYs[k] += gei * Xs[j], gYs[j] -= gei * Xs[k], gXs[k] -= gei * Ys[j];
-      // a_i = Ys_j W_k - W_j Ys_k
-      gYs[j] += gai * Wc[k], gW[k] += gai * Ys[j], gW[j] -= gai * Ys[k], gYs[k] -= gai * Wc[j];
-      // b_i = W_j Xs_k - Xs_j W_k
-      gW[j] += gbi * Xs[k], gXs[k] += gbi * Wc[j], gXs[j] -= gbi * Wc[k], gW[k] -= gbi * Xs[j];
+      // a_i = Y_j W_k - W_j Y_k
+      gY[j] += gai * Wc[k], gW[k] += gai * Y[j], gW[j] -= gai * Y[k], gY[k] -= gai * Wc[j];
+      // b_i = W_j X_k - X_j W_k
+      gW[j] += gbi * X[k], gX[k] += gbi * Wc[j], gX[j] -= gbi * Wc[k], gW[k] -= gbi * X[j];
     }
     for (int i = 0; i < 3; ++i) {
       // Xs = X - x W, Ys = Y - y W
-      g[4 * i] = T(gXs[i] * sc);
-      g[4 * i + 1] = T(gYs[i] * sc);
+      g[4 * i] = T((gX[i] + gXs[i]) * sc);
+      g[4 * i + 1] = T((gY[i] + gYs[i]) * sc);
       g[4 * i + 2] = T(gZc[i] * sc);
       g[4 * i + 3] = T((gW[i] - x * gXs[i] - y * gYs[i]) * sc);
     }
