@@ -144,8 +144,9 @@ class Kernel:
     def raster(self, pos, faces, H, W, cull, bits, floor_z, floor_id, *, count: bool = False, layers: int = 1):
         return self._ops.raster(pos, faces, H, W, cull, bits, floor_z, floor_id, count, layers)
 
-    def raster_fragments(self, pos, faces, tri_id, *, packed: bool = False, offset: int = 0):
-        return self._ops.raster_fragments(pos, faces, tri_id, packed, offset)
+    def raster_fragments(self, pos, faces, tri_id, *, packed: bool = False, offset: int = 0,
+                         derivatives: bool = True):
+        return self._ops.raster_fragments(pos, faces, tri_id, packed, offset, derivatives)
 
     def raster_fragments_backward(self, pos, faces, tri_id, idx, grads, packed: bool) -> Tensor:
         return self._ops.raster_fragments_backward(pos, faces, tri_id, idx, grads, packed)
@@ -355,14 +356,17 @@ def _register_fakes() -> None:
         return like(pos, n * layers, dtype=torch.int64), like(pos, n, dtype=torch.float64)
 
     @register_fake("difftex::raster_fragments")
-    def _(pos, faces, tri_id, packed, offset):
+    def _(pos, faces, tri_id, packed, offset, derivatives):
         N = get_ctx().new_dynamic_size()
         B, H, W = tri_id.shape
         idx = like(pos, N, dtype=torch.int64)
+
+        def deriv(*shape):  # empty [0] where the derivatives are not asked for
+            return like(pos, *shape) if derivatives else like(pos, 0)
         if packed:
-            return [idx, like(pos, B, H, W, 4), like(pos, B, H, W, 4)]
-        return [idx, like(pos, N, 3), like(pos, N, 3), like(pos, N, 3), like(pos, B, H, W, 3), like(pos, B, H, W),
-                like(pos, B, H, W, 3), like(pos, B, H, W, 3)]
+            return [idx, like(pos, B, H, W, 4), deriv(B, H, W, 4)]
+        return [idx, like(pos, N, 3), deriv(N, 3), deriv(N, 3), like(pos, B, H, W, 3), like(pos, B, H, W),
+                deriv(B, H, W, 3), deriv(B, H, W, 3)]
 
     @register_fake("difftex::raster_fragments_backward")
     def _(pos, faces, tri_id, idx, grads, packed):

@@ -196,11 +196,12 @@ def _packer(offset: int, output_db: bool, grad_db: bool) -> Callable[[Tensor, Te
     positions, ids + 1 (+ range offset), from the native kernel in that layout or from difftex fragments."""
 
     def emit(pos: Tensor, faces: Tensor, tri_id: Tensor) -> tuple[Tensor, Tensor]:
-        packed = packed_fragments(pos, faces, tri_id, offset)
+        # Without output_db the derivatives are neither computed nor stored.
+        packed = packed_fragments(pos, faces, tri_id, offset, derivatives=output_db)
         if packed is not None:
             rast, db, idx = packed
         else:
-            frags = fragments_of(pos, faces, tri_id)
+            frags = fragments_of(pos, faces, tri_id, derivatives=output_db)
             idx = frags._compact[0]
             ids = frags.tri_id + 1  # background -1 -> 0
             if offset:
@@ -210,7 +211,7 @@ def _packer(offset: int, output_db: bool, grad_db: bool) -> Callable[[Tensor, Te
                                 ids.to(frags.bary.dtype)], -1)
             # Rows of the mirrored image run up the real one: d/d(row) there is nvdiffrast's d/dY.
             dx, dy = frags.bary_dx, frags.bary_dy
-            db = torch.stack([dx[..., 0], dy[..., 0], dx[..., 1], dy[..., 1]], -1)
+            db = None if dx is None else torch.stack([dx[..., 0], dy[..., 0], dx[..., 1], dy[..., 1]], -1)
         # interpolate() reads the covered pixels from here while rast is
         # unchanged (same object, same version counter) instead of searching
         # rast's ids again.

@@ -95,3 +95,17 @@ def test_opcheck(recorded, name):
     op = getattr(torch.ops.difftex, name).default
     torch.library.opcheck(op, recorded[name],
                           test_utils=("test_schema", "test_autograd_registration", "test_faketensor"))
+
+
+@pytest.mark.parametrize("packed", [False, True])
+def test_opcheck_raster_fragments_without_derivatives(packed):
+    # rasterize(..., derivatives=False) and nvdiffrast without output_db: the derivative outputs are empty [0].
+    pos = torch.tensor([[[-0.8, -0.8, 0.1, 1.0], [0.8, -0.7, 0.2, 1.0], [0.0, 0.9, 0.3, 1.0]]], dtype=torch.float64)
+    faces = torch.tensor([[0, 1, 2]])
+    tri_id = difftex.rasterize(pos, faces, (6, 5)).tri_id
+    args = (pos, faces, tri_id, packed, 0, False)
+    out = torch.ops.difftex.raster_fragments(*args)
+    assert [tuple(t.shape) for t in out][2:] == ([(0,)] if packed else
+                                           [(0,), (0,), (1, 6, 5, 3), (1, 6, 5), (0,), (0,)])
+    torch.library.opcheck(torch.ops.difftex.raster_fragments.default, args,
+                          test_utils=("test_schema", "test_autograd_registration", "test_faketensor"))

@@ -133,8 +133,9 @@ std::tuple<Tensor, Tensor> raster_op(Tensor pos, Tensor faces, int64_t H, int64_
   return raster(pos, faces, H, W, cull, bits, floor_z, floor_id, count, layers);
 }
 
-std::vector<Tensor> raster_fragments_op(Tensor pos, Tensor faces, Tensor tri_id, bool packed, int64_t offset) {
-  return raster_fragments(pos, faces, tri_id, packed, offset);
+std::vector<Tensor> raster_fragments_op(Tensor pos, Tensor faces, Tensor tri_id, bool packed, int64_t offset,
+                                        bool derivatives) {
+  return raster_fragments(pos, faces, tri_id, packed, offset, derivatives);
 }
 
 Tensor raster_fragments_backward_op(Tensor pos, Tensor faces, Tensor tri_id, Tensor idx, OptTensors grads,
@@ -245,7 +246,8 @@ STABLE_TORCH_LIBRARY(difftex, m) {
         "bool need_texture, bool need_uv) -> (Tensor?, Tensor?)");
   m.def("raster(Tensor pos, Tensor faces, int H, int W, bool cull, int bits, Tensor floor_z, Tensor floor_id, "
         "bool count, int layers) -> (Tensor, Tensor)");
-  m.def("raster_fragments(Tensor pos, Tensor faces, Tensor tri_id, bool packed, int offset) -> Tensor[]");
+  m.def("raster_fragments(Tensor pos, Tensor faces, Tensor tri_id, bool packed, int offset, bool derivatives) "
+        "-> Tensor[]");
   m.def("raster_fragments_backward(Tensor pos, Tensor faces, Tensor tri_id, Tensor idx, Tensor?[] grads, "
         "bool packed) -> Tensor");
   m.def("cube_front(Tensor dirs, Tensor dx, Tensor dy, Tensor bias, float bias0, int S, int levels, float band) "

@@ -46,10 +46,15 @@ def interpolate(
     Gradients reach ``attr`` and, through ``frags.bary`` / ``bary_dx`` /
     ``bary_dy``, the clip-space positions given to rasterize; background
     pixels contribute zero gradient. Raises TypeError on bad dtypes,
-    ValueError naming the argument on bad shapes or out-of-range indices.
+    ValueError naming the argument on bad shapes or out-of-range indices,
+    and ValueError with ``derivatives=True`` on fragments rasterized with
+    ``derivatives=False``.
     """
     if not isinstance(frags, Fragments):
         raise TypeError(f"frags must be a difftex.Fragments, got {type(frags).__name__}")
+    if derivatives and (frags.bary_dx is None or frags.bary_dy is None):
+        raise ValueError("interpolate(derivatives=True) needs frags with bary_dx and bary_dy: rasterize with "
+                         "derivatives=True (the default)")
     if not isinstance(attr, Tensor):
         raise TypeError(f"attr must be a torch.Tensor, got {type(attr).__name__}")
     if not attr.dtype.is_floating_point:
@@ -96,7 +101,8 @@ def interpolate(
         idx, w_bary, w_dx, w_dy = compact
     else:
         idx = torch.nonzero(tri_id.reshape(-1) >= 0).squeeze(1)  # flat over [B, H, W]
-        w_bary, w_dx, w_dy = (w.reshape(-1, 3).index_select(0, idx) for w in (frags.bary, frags.bary_dx, frags.bary_dy))
+        w_bary, w_dx, w_dy = (None if w is None else w.reshape(-1, 3).index_select(0, idx)
+                              for w in (frags.bary, frags.bary_dx, frags.bary_dy))
     corner = index.index_select(0, tri_id.reshape(-1).index_select(0, idx))  # [N, 3]
     if Ba == 1:
         vals = attr[0].index_select(0, corner.reshape(-1)).view(1, -1, 3, A)

@@ -30,7 +30,7 @@ over the front triangle near a silhouette; fragments outside
 exactly; equal depths go to the lowest triangle id.
 
 On the CPU the visibility pass runs in the native kernel
-(``difftex/texture/native/csrc/raster.cpp``) where ``difftex.backend``
+(``difftex/csrc/cpu/geometry/raster.cpp``) where ``difftex.backend``
 sends it, with the same rules and the same floating-point operations, so
 both give identical ids; the torch path here is the reference and serves
 CUDA, ``difftex.backend("reference")`` and ``DIFFTEX_NATIVE=0``.
@@ -47,6 +47,7 @@ top of the image (NDC y = +1), pixel ``(r, c)`` has its centre at NDC
 
 from __future__ import annotations
 
+import functools
 import itertools
 
 from dataclasses import dataclass, field
@@ -93,9 +94,10 @@ class Fragments:
         depth: [B, H, W] NDC z of the visible surface (smaller is nearer);
             zero on background.
         bary_dx: [B, H, W, 3] d(bary) / d(pixel column), analytic (2/W
-            times d(bary)/d(NDC x)).
+            times d(bary)/d(NDC x)); None from ``rasterize(...,
+            derivatives=False)``.
         bary_dy: [B, H, W, 3] d(bary) / d(pixel row), analytic (rows grow
-            downwards, so this is -2/H times d(bary)/d(NDC y)).
+            downwards, so this is -2/H times d(bary)/d(NDC y)); None likewise.
 
     ``bary``, ``depth``, ``bary_dx`` and ``bary_dy`` are differentiable with
     respect to the clip-space positions given to :func:`rasterize`.
@@ -104,11 +106,12 @@ class Fragments:
     tri_id: Tensor
     bary: Tensor
     depth: Tensor
-    bary_dx: Tensor
-    bary_dy: Tensor
-    # (flat index of covered pixels, bary, bary_dx, bary_dy there), set by
-    # rasterize; not an init field, so dataclasses.replace() drops it.
-    _compact: Optional[tuple[Tensor, Tensor, Tensor, Tensor]] = field(
+    bary_dx: Optional[Tensor]
+    bary_dy: Optional[Tensor]
+    # (flat index of covered pixels, bary, bary_dx, bary_dy there (None
+    # without derivatives)), set by rasterize; not an init field, so
+    # dataclasses.replace() drops it.
+    _compact: Optional[tuple[Tensor, Tensor, Optional[Tensor], Optional[Tensor]]] = field(
         default=None, init=False, repr=False, compare=False
     )
 
@@ -713,20 +716,36 @@ def _bary_at(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, T
 
     ``v`` [N, 3, 4] clip-space corners, ``x``, ``y`` [N] NDC sample points.
     Returns bary [N, 3], depth [N], d(bary)/d(column) [N, 3],
-    d(bary)/d(row) [N, 3]. Differentiable with respect to ``v``; every
-    division is guarded so that degenerate input gives finite values and
-    finite gradients (the "double where" pattern).
+    d(bary)/d(row) [N, 3] in ``v``'s dtype. Differentiable with respect to
+    ``v``; every division is guarded so that degenerate input gives finite
+    values and finite gradients (the "double where" pattern).
+
+    Computed in float64 whatever the dtype (one rounding at the end for
+    float32) in the pixel-centred frame: the corners are sheared by
+    ``(X, Y, W) -> (X - x W, Y - y W, W)``, which has determinant 1 and moves
+    the pixel to ``(0, 0, 1)``, so the edge function ``e_i = det[h_j, h_k, p]``
+    is the 2D cross product ``X'_j Y'_k - Y'_j X'_k``: on a small or distant
+    triangle a product of small numbers, where the expanded ``a x + b y + c``
+    cancels large terms and lost every digit on sub-pixel triangles (issue
+    40). The slopes ``a_i = de_i/dx = Y_j W_k - W_j Y_k``, ``b_i = de_i/dy =
+    W_j X_k - X_j W_k`` do not depend on the pixel (from float32 corners
+    both products are exact in float64: one rounding). The native kernel
+    (raster.cpp ``Tri``) computes the same formula.
     """
+    dtype = v.dtype
+    v = v.to(torch.float64)
+    x, y = x.to(torch.float64), y.to(torch.float64)
     v = pow2_normalise(v, v.detach().abs().amax(dim=(-1, -2), keepdim=True))  # invariant: homogeneous scale
+    X, Y, Z, Wc = v.unbind(-1)  # [N, 3] each
+    Xs = X - x[:, None] * Wc
+    Ys = Y - y[:, None] * Wc
     # Corner j and k of edge i (opposite corner i), all three edges at once.
-    vj = v.roll(-1, dims=1)  # roll: much cheaper than fancy indexing on CPU
-    vk = v.roll(-2, dims=1)
-    Xj, Yj, _, Wj = vj.unbind(-1)
-    Xk, Yk, _, Wk = vk.unbind(-1)
-    a = Yj * Wk - Wj * Yk  # (h_j x h_k) . (x, y, 1) = a x + b y + c
-    b = Wj * Xk - Xj * Wk
-    c = Xj * Yk - Yj * Xk
-    e = a * x[:, None] + b * y[:, None] + c  # [N, 3]
+    Xj, Yj, Wj = Xs.roll(-1, dims=1), Ys.roll(-1, dims=1), Wc.roll(-1, dims=1)  # roll: cheaper than fancy indexing
+    Xk, Yk, Wk = Xs.roll(-2, dims=1), Ys.roll(-2, dims=1), Wc.roll(-2, dims=1)
+    e = Xj * Yk - Yj * Xk  # [N, 3]
+    Xuj, Yuj, Xuk, Yuk = X.roll(-1, dims=1), Y.roll(-1, dims=1), X.roll(-2, dims=1), Y.roll(-2, dims=1)
+    a = Yuj * Wk - Wj * Yuk
+    b = Wj * Xuk - Xuj * Wk
     s = e.sum(-1)
     ok = s != 0
     s_safe = torch.where(ok, s, torch.ones_like(s))
@@ -734,8 +753,8 @@ def _bary_at(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, T
     # d(bary_i)/dx = (a_i - bary_i * sum(a)) / sum(e), same for y with b.
     dx = (a - bary * a.sum(-1, keepdim=True)) / s_safe[:, None]
     dy = (b - bary * b.sum(-1, keepdim=True)) / s_safe[:, None]
-    zn = (e * v[..., 2]).sum(-1)
-    wn = (e * v[..., 3]).sum(-1)
+    zn = (e * Z).sum(-1)
+    wn = (e * Wc).sum(-1)
     okw = ok & (wn != 0)
     depth = zn / torch.where(okw, wn, torch.ones_like(wn))
     zero3 = torch.zeros_like(bary)
@@ -744,7 +763,7 @@ def _bary_at(v: Tensor, x: Tensor, y: Tensor, W: int, H: int) -> tuple[Tensor, T
     dx = torch.where(ok[:, None], dx, zero3) * (2.0 / W)
     dy = torch.where(ok[:, None], dy, zero3) * (-2.0 / H)
     depth = torch.where(okw, depth, torch.zeros_like(depth))
-    return bary, depth, dx, dy
+    return bary.to(dtype), depth.to(dtype), dx.to(dtype), dy.to(dtype)
 
 
 def _pixels(pos: Tensor, faces: Tensor, tri_id: Tensor, idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -756,8 +775,10 @@ def _pixels(pos: Tensor, faces: Tensor, tri_id: Tensor, idx: Tensor) -> tuple[Te
     rc = idx - bi * (H * W)
     r = torch.div(rc, W, rounding_mode="floor")
     col = rc - r * W
-    xs = _pixel_centres(W, pos.dtype, pos.device, flip=False)
-    ys = _pixel_centres(H, pos.dtype, pos.device, flip=True)
+    # float64 centres whatever the dtype: _bary_at works in float64 (the
+    # kernel likewise), and a float32 centre is off by up to 6e-8 NDC.
+    xs = _pixel_centres(W, torch.float64, pos.device, flip=False)
+    ys = _pixel_centres(H, torch.float64, pos.device, flip=True)
     # One flat gather (much faster than 2-index advanced indexing on CPU).
     vid = (bi * pos.shape[1])[:, None] + faces.index_select(0, f)
     v = pos.reshape(-1, 4).index_select(0, vid.reshape(-1)).view(-1, 3, 4)
@@ -773,7 +794,8 @@ class _NativeFragments(torch.autograd.Function):
 
     Outputs (idx, bary_c, dx_c, dy_c, bary, depth, bary_dx, bary_dy), or with
     ``packed`` nvdiffrast's (idx, rast, db) (rast's depth and id take no
-    gradient). The first-order backward is the kernel's hand-written adjoint
+    gradient); without ``derivatives`` the derivative outputs are empty [0]
+    tensors that nothing reads. The first-order backward is the kernel's hand-written adjoint
     of the same formula, reading the gradients where autograd leaves them;
     under create_graph the dense gradients are gathered at the covered pixels
     and the torch formula :func:`_bary_at` is differentiated there from
@@ -781,8 +803,10 @@ class _NativeFragments(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, pos: Tensor, faces: Tensor, tri_id: Tensor, mod, packed: bool, offset: int):
-        out = mod.raster_fragments(pos.detach(), faces, tri_id, packed=packed, offset=offset)
+    def forward(ctx, pos: Tensor, faces: Tensor, tri_id: Tensor, mod, packed: bool, offset: int,
+                derivatives: bool = True):
+        out = mod.raster_fragments(pos.detach(), faces, tri_id, packed=packed, offset=offset,
+                                   derivatives=derivatives)
         ctx.save_for_backward(pos, faces, tri_id, out[0])
         ctx.packed, ctx.mod = packed, mod
         ctx.mark_non_differentiable(out[0])
@@ -792,7 +816,9 @@ class _NativeFragments(torch.autograd.Function):
     @staticmethod
     def backward(ctx, _gidx: None, *grads: Optional[Tensor]):
         pos, faces, tri_id, idx = ctx.saved_tensors
-        none = (None,) * 6
+        none = (None,) * 7
+        # The empty derivative outputs of a call without derivatives take no gradient.
+        grads = tuple(None if g is None or g.numel() == 0 else g for g in grads)
         if all(g is None for g in grads):
             return none
         if not (torch.is_grad_enabled() and pos.requires_grad):
@@ -836,6 +862,7 @@ def rasterize(
     resolution: Sequence[int],
     *,
     cull_backfaces: bool = False,
+    derivatives: bool = True,
 ) -> Fragments:
     """Rasterize triangles with a z-buffer into per-pixel triangle ids and barycentrics.
 
@@ -849,12 +876,17 @@ def rasterize(
             x = (c + 0.5) / W * 2 - 1, y = 1 - (r + 0.5) / H * 2 (row 0 is the
             top of the image).
         cull_backfaces: drop clockwise (back-facing) triangles.
+        derivatives: compute the screen-space derivatives bary_dx, bary_dy
+            (default). False leaves them None and skips their work and
+            memory (a quarter of the pass's output bytes each): for renders
+            that interpolate no minified texture coordinates (nvdiffrast
+            computes them only on request too).
 
     Returns:
         :class:`Fragments` with tri_id [B, H, W] int64 (-1 = background),
         bary [B, H, W, 3] perspective-correct, depth [B, H, W] NDC z and the
         analytic screen-space derivatives bary_dx, bary_dy [B, H, W, 3] per
-        pixel column / row.
+        pixel column / row (None with ``derivatives=False``).
 
     Visibility: the nearest fragment (smallest NDC z, compared in float64
     whatever the input dtype) wins, equal depths go to the lowest triangle
@@ -869,9 +901,13 @@ def rasterize(
     same ids where ``difftex.backend`` chooses it (:func:`depth_peel` peels
     further layers).
 
-    ``bary``, ``depth``, ``bary_dx`` and ``bary_dy`` are differentiable with
-    respect to ``pos`` (the perspective-correct formula); which triangle is
-    visible is not. Their gradients scale as 1 / |corner|: where every corner
+    ``bary``, ``depth``, ``bary_dx`` and ``bary_dy`` are computed in float64
+    whatever the dtype, from edge functions of the corners sheared to a
+    pixel-centred frame (no cancellation on small or distant triangles), so
+    float32 values are the exact ones of the given corners rounded once
+    (|bary - exact| <= 6e-8 for barycentrics within [0, 1]). They are
+    differentiable with respect to ``pos`` (the perspective-correct formula);
+    which triangle is visible is not. Their gradients scale as 1 / |corner|: where every corner
     of a visible triangle is subnormal (below 1.2e-38 in float32), the
     values are still exact but the position gradients overflow the dtype
     (inf, or NaN where two overflows meet). Raises TypeError on bad dtypes, ValueError naming the
@@ -879,7 +915,10 @@ def rasterize(
     ValueError naming ``resolution`` and the batch where the per-pixel
     buffers would exceed :data:`MAX_BYTES` (16 GiB by default).
     """
-    return next(visible_layers(pos, faces, resolution, cull_backfaces, fragments_of))
+    if not isinstance(derivatives, bool):
+        raise TypeError(f"rasterize: derivatives must be a bool, got {type(derivatives).__name__}")
+    return next(visible_layers(pos, faces, resolution, cull_backfaces, functools.partial(
+        fragments_of, derivatives=derivatives)))
 
 
 def depth_peel(
@@ -974,20 +1013,21 @@ def visible_layers(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_b
         floor = (zbuf, tri_id[-1].reshape(-1))
 
 
-def fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
+def fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor, derivatives: bool = True) -> Fragments:
     """The differentiable pass: :class:`Fragments` of the triangles ``tri_id`` [B, H, W] names (-1 background).
 
     ``pos`` [B, V, 4] and ``faces`` [F, 3] as checked by :func:`visible_layers`
     (no checks here). bary, depth, bary_dx and bary_dy are differentiable
     with respect to ``pos`` (native forward and first-order backward on the
-    CPU, the torch formula elsewhere and for double backward).
+    CPU, the torch formula elsewhere and for double backward); without
+    ``derivatives`` bary_dx and bary_dy are None and not computed.
     """
     from .. import _native as native
 
     mod = native.kernel(pos)
     if mod is not None:
         idx, bary_c, dx_c, dy_c, bary, depth, bary_dx, bary_dy = _NativeFragments.apply(
-            pos, faces, tri_id, mod, False, 0)
+            pos, faces, tri_id, mod, False, 0, derivatives)
     else:
         B, H, W = tri_id.shape
         idx = torch.nonzero(tri_id.reshape(-1) >= 0).squeeze(1)
@@ -1002,7 +1042,10 @@ def fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
             out.index_put_((idx,), vals)  # in place on fresh zeros: no copy
             return out.view(B, H, W, *k)
 
-        bary, depth, bary_dx, bary_dy = dense(bary_c), dense(depth_c), dense(dx_c), dense(dy_c)
+        bary, depth = dense(bary_c), dense(depth_c)
+        bary_dx, bary_dy = (dense(dx_c), dense(dy_c)) if derivatives else (None, None)
+    if not derivatives:
+        dx_c = dy_c = bary_dx = bary_dy = None
     frags = Fragments(tri_id=tri_id, bary=bary, depth=depth, bary_dx=bary_dx, bary_dy=bary_dy)
     # Covered pixels in compact form for interpolate(): gathering from the
     # dense tensors would cost a dense zero gradient per tensor in backward.
@@ -1010,8 +1053,8 @@ def fragments_of(pos: Tensor, faces: Tensor, tri_id: Tensor) -> Fragments:
     return frags
 
 
-def packed_fragments(pos: Tensor, faces: Tensor, tri_id: Tensor,
-                     offset: int) -> Optional[tuple[Tensor, Tensor, Tensor]]:
+def packed_fragments(pos: Tensor, faces: Tensor, tri_id: Tensor, offset: int,
+                     derivatives: bool = True) -> Optional[tuple[Tensor, Tensor, Tensor]]:
     """nvdiffrast's (rast, rast_db) of ``tri_id`` [B, H, W] straight from the native kernel (difftex.nvdiffrast's
     fast path), or None where the kernel does not serve ``pos``.
 
@@ -1019,12 +1062,13 @@ def packed_fragments(pos: Tensor, faces: Tensor, tri_id: Tensor,
     = (db0/dx, db0/dy, db1/dx, db1/dy) per column / row, zeros on background;
     the third tensor is the flat index [N] of the covered pixels.
     b0, b1 and rast_db are differentiable with respect to ``pos``; the depth
-    and id columns are not.
+    and id columns are not. Without ``derivatives`` rast_db is an empty [0]
+    tensor (not computed).
     """
     from .. import _native as native
 
     mod = native.kernel(pos)
     if mod is None:
         return None
-    idx, rast, db = _NativeFragments.apply(pos, faces, tri_id, mod, True, offset)
+    idx, rast, db = _NativeFragments.apply(pos, faces, tri_id, mod, True, offset, derivatives)
     return rast, db, idx

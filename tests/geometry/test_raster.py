@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import difftex
-from difftex import camera, rasterize
+from difftex import camera, interpolate, rasterize
 from difftex.geometry.raster import _coverage_count
 
 from difftex.testing import icosphere
@@ -597,3 +597,23 @@ def test_subnormal_corners_give_the_unit_triangles_values(dtype, scale):
     assert torch.equal(got.tri_id, ref.tri_id) and int((got.tri_id >= 0).sum()) == 8
     for name in ("bary", "bary_dx", "bary_dy", "depth"):
         torch.testing.assert_close(getattr(got, name), getattr(ref, name), rtol=0, atol=1e-6, msg=name)
+
+
+def test_without_derivatives_same_values_and_gradients():
+    # derivatives=False skips bary_dx / bary_dy (None) and changes nothing else, gradients included.
+    pos, F = _scene64(2)
+    p1 = pos.clone().requires_grad_(True)
+    p2 = pos.clone().requires_grad_(True)
+    full = rasterize(p1, F, (16, 16))
+    lean = rasterize(p2, F, (16, 16), derivatives=False)
+    assert lean.bary_dx is None and lean.bary_dy is None
+    assert torch.equal(full.tri_id, lean.tri_id)
+    assert torch.equal(full.bary, lean.bary) and torch.equal(full.depth, lean.depth)
+    uv = torch.rand(pos.shape[0], 2, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    (full.bary.square().sum() + full.depth.sum() + interpolate(uv, F, full).sum()).backward()
+    (lean.bary.square().sum() + lean.depth.sum() + interpolate(uv, F, lean).sum()).backward()
+    torch.testing.assert_close(p2.grad, p1.grad, rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match="derivatives=True"):
+        interpolate(uv, F, lean, derivatives=True)
+    with pytest.raises(TypeError, match="derivatives must be a bool"):
+        rasterize(pos, F, (4, 4), derivatives=1)

@@ -81,9 +81,10 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
 // bary [B, H, W, 3], depth [B, H, W], bary_dx, bary_dy [B, H, W, 3]); with
 // packed, nvdiffrast's layout instead: (idx, rast [B, H, W, 4] = (b0, b1,
 // depth, id + 1 + offset), db [B, H, W, 4] = (db0/dx, db0/dy, db1/dx,
-// db1/dy)); zeros on background.
+// db1/dy)); zeros on background. Without derivatives the bary_dx, bary_dy
+// (or db) outputs are empty [0] tensors and cost nothing.
 std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
-                                            bool packed, int64_t offset);
+                                            bool packed, int64_t offset, bool derivatives);
 // Its first-order backward: the output gradients as autograd gives them
 // (compact and dense, or packed; undefined: none) -> the gradient of pos.
 Tensor raster_fragments_backward(Tensor pos, Tensor faces, Tensor tri_id,

@@ -98,8 +98,8 @@ struct Exact {
 // vertex whose largest |coordinate| is m >= 0, from the exponent bits (the
 // libm frexp / ldexp calls cost more than the rest of the vertex pass);
 // zero, subnormal, non-finite or huge m take the libm route. A subnormal m
-// gets the largest finite factor instead (2^1023; 2^127 for float), which
-// brings it into [2^-51, 2) ([2^-22, 2) for float): no overflow, no inf.
+// gets the largest finite factor instead (2^1023), which brings it into
+// [2^-51, 2): no overflow, no inf.
 inline double pow2_scale(double m) {
   uint64_t bits;
   std::memcpy(&bits, &m, 8);
@@ -120,24 +120,6 @@ inline double pow2_scale(double m) {
 // loops ask for the corner records of the triangle kAhead places on, so
 // that their cache misses overlap instead of stalling one by one.
 constexpr int64_t kAhead = 8;
-
-// The same for float (8 exponent bits, bias 127): raster_fragments' scale
-// of a triangle's corners in the input precision.
-inline float pow2_scale(float m) {
-  uint32_t bits;
-  std::memcpy(&bits, &m, 4);
-  const int be = int(bits >> 23) & 0xff;
-  const int rb = 253 - be;
-  if (be == 0 || be == 0xff || rb <= 0) {
-    int ex = 0;
-    std::frexp(m, &ex);
-    return std::ldexp(1.0f, std::min(-ex, 127));
-  }
-  const uint32_t r = uint32_t(rb) << 23;
-  float out;
-  std::memcpy(&out, &r, 4);
-  return out;
-}
 
 inline double max_abs4(const double* p) {
   return std::max({std::abs(p[0]), std::abs(p[1]), std::abs(p[2]), std::abs(p[3])});
@@ -993,21 +975,29 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
 
 namespace {
 
-// One triangle's pixel-independent part of geometry/raster.py _bary_at: the
-// corners scaled by a power of two (max |coordinate| in [0.5, 1): no
-// overflow, the same ratios) and the edge-function coefficients a, b, c
-// (e_i = a_i x + b_i y + c_i). Consecutive pixels of a row mostly share a
-// triangle, so this is computed once per run of them.
-template <typename T>
+// geometry/raster.py _bary_at for one triangle, in double whatever the
+// input dtype (its float32 outputs are then rounded once, at the end).
+// load() keeps the corners scaled by a power of two (max |coordinate| in
+// [0.5, 1): no overflow, the same ratios); consecutive pixels of a row
+// mostly share a triangle, so it runs once per run of them, with the
+// slopes a_i = de_i/dx = Y_j W_k - W_j Y_k, b_i = de_i/dy = W_j X_k - X_j W_k
+// (pixel-independent; from float32 corners both products are exact in
+// double, so one rounding). Per pixel the corners are sheared to the
+// pixel-centred frame X' = X - x W, Y' = Y - y W (determinant 1, the pixel
+// moves to (0, 0, 1)): the edge functions e_i = det[h_j, h_k, p] =
+// X'_j Y'_k - Y'_j X'_k are then products of small numbers on a small or
+// distant triangle, where the expanded a x + b y + c cancels large terms
+// (issue 40: barycentrics off by 1 on sub-pixel triangles).
 struct Tri {
-  T X[3], Y[3], Z[3], Wc[3], a[3], b[3], c[3], sa, sb, sc;
+  double X[3], Y[3], Z[3], Wc[3], a[3], b[3], sa, sb, sc;
 
+  template <typename T>
   void load(const T* pos, const int64_t* corner_rows) {
-    T m = 0;
+    double m = 0;
     for (int i = 0; i < 3; ++i) {
       const T* v = pos + 4 * corner_rows[i];
       X[i] = v[0], Y[i] = v[1], Z[i] = v[2], Wc[i] = v[3];
-      m = std::max({m, std::abs(v[0]), std::abs(v[1]), std::abs(v[2]), std::abs(v[3])});
+      m = std::max({m, std::abs(X[i]), std::abs(Y[i]), std::abs(Z[i]), std::abs(Wc[i])});
     }
     sc = pow2_scale(m);
     for (int i = 0; i < 3; ++i) X[i] *= sc, Y[i] *= sc, Z[i] *= sc, Wc[i] *= sc;
@@ -1015,73 +1005,94 @@ struct Tri {
       const int j = (i + 1) % 3, k = (i + 2) % 3;
       a[i] = Y[j] * Wc[k] - Wc[j] * Y[k];
       b[i] = Wc[j] * X[k] - X[j] * Wc[k];
-      c[i] = X[j] * Y[k] - Y[j] * X[k];
     }
     sa = a[0] + a[1] + a[2];
     sb = b[0] + b[1] + b[2];
   }
 
-  // Barycentrics ob, d/d(column) odx, d/d(row) ody [3] and the NDC depth at
-  // the NDC point (x, y); (sx, sy) = (2 / W, -2 / H). Zeros where degenerate.
-  T eval(T x, T y, T sx, T sy, T* ob, T* odx, T* ody) const {
-    T e[3];
-    for (int i = 0; i < 3; ++i) e[i] = a[i] * x + b[i] * y + c[i];
-    const T s = e[0] + e[1] + e[2];
+  // The sheared corners and the edge functions e at the NDC point (x, y).
+  void edges(double x, double y, double* Xs, double* Ys, double* e) const {
+    for (int i = 0; i < 3; ++i) Xs[i] = X[i] - x * Wc[i], Ys[i] = Y[i] - y * Wc[i];
+    for (int i = 0; i < 3; ++i) {
+      const int j = (i + 1) % 3, k = (i + 2) % 3;
+      e[i] = Xs[j] * Ys[k] - Ys[j] * Xs[k];
+    }
+  }
+
+  // Barycentrics ob, d/d(column) odx, d/d(row) ody [3] (null odx: no
+  // derivatives) and the NDC depth at the NDC point (x, y); (sx, sy) =
+  // (2 / W, -2 / H). Zeros where degenerate.
+  template <typename T>
+  T eval(double x, double y, double sx, double sy, T* ob, T* odx, T* ody) const {
+    double Xs[3], Ys[3], e[3];
+    edges(x, y, Xs, Ys, e);
+    const double s = e[0] + e[1] + e[2];
     if (s == 0) {
-      for (int i = 0; i < 3; ++i) ob[i] = odx[i] = ody[i] = 0;
+      for (int i = 0; i < 3; ++i) ob[i] = 0;
+      if (odx)
+        for (int i = 0; i < 3; ++i) odx[i] = ody[i] = 0;
       return 0;
     }
-    const T is = T(1) / s, isx = is * sx, isy = is * sy;
-    for (int i = 0; i < 3; ++i) {
-      ob[i] = e[i] * is;
-      odx[i] = (a[i] - ob[i] * sa) * isx;
-      ody[i] = (b[i] - ob[i] * sb) * isy;
+    const double is = 1.0 / s;
+    for (int i = 0; i < 3; ++i) ob[i] = T(e[i] * is);
+    if (odx) {
+      const double isx = is * sx, isy = is * sy;
+      for (int i = 0; i < 3; ++i) {
+        const double bi = e[i] * is;
+        odx[i] = T((a[i] - bi * sa) * isx);
+        ody[i] = T((b[i] - bi * sb) * isy);
+      }
     }
-    const T zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
-    const T wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
-    return wn != 0 ? zn / wn : T(0);
+    const double zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
+    const double wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
+    return wn != 0 ? T(zn / wn) : T(0);
   }
 
   // The adjoint of eval (reverse mode by hand): gB, gDx, gDy [3] and gZ the
   // output gradients (null: none) -> g [12] the gradient w.r.t. the
   // unscaled corners (the outputs do not depend on the scale, so it is the
   // scaled corners' gradient times sc).
-  void adjoint(T x, T y, T sx, T sy, const T* gB, const T* gDx, const T* gDy, const T* gZ, T* g) const {
+  template <typename T>
+  void adjoint(double x, double y, double sx, double sy, const T* gB, const T* gDx, const T* gDy, const T* gZ,
+               T* g) const {
     for (int i = 0; i < 12; ++i) g[i] = 0;
-    T e[3];
-    for (int i = 0; i < 3; ++i) e[i] = a[i] * x + b[i] * y + c[i];
-    const T s = e[0] + e[1] + e[2];
+    double Xs[3], Ys[3], e[3];
+    edges(x, y, Xs, Ys, e);
+    const double s = e[0] + e[1] + e[2];
     if (s == 0) return;  // the outputs are the constant 0 there
-    const T is = T(1) / s;
-    T ga[3], gb[3], ge[3];
-    T gs = 0, gsa = 0, gsb = 0;
+    const double is = 1.0 / s;
+    double ga[3], gb[3], ge[3];
+    double gs = 0, gsa = 0, gsb = 0;
     for (int i = 0; i < 3; ++i) {
-      const T bary = e[i] * is;
-      T gbary = gB ? gB[i] : T(0);
+      const double bary = e[i] * is;
+      double gbary = gB ? double(gB[i]) : 0.0;
       ga[i] = gb[i] = 0;
       if (gDx) {
-        const T dx = (a[i] - bary * sa) * is * sx;
-        ga[i] += sx * gDx[i] * is;
-        gsa -= sx * gDx[i] * bary * is;
-        gbary -= sx * sa * gDx[i] * is;
-        gs -= gDx[i] * dx * is;
+        const double gd = gDx[i];
+        const double dx = (a[i] - bary * sa) * is * sx;
+        ga[i] += sx * gd * is;
+        gsa -= sx * gd * bary * is;
+        gbary -= sx * sa * gd * is;
+        gs -= gd * dx * is;
       }
       if (gDy) {
-        const T dy = (b[i] - bary * sb) * is * sy;
-        gb[i] += sy * gDy[i] * is;
-        gsb -= sy * gDy[i] * bary * is;
-        gbary -= sy * sb * gDy[i] * is;
-        gs -= gDy[i] * dy * is;
+        const double gd = gDy[i];
+        const double dy = (b[i] - bary * sb) * is * sy;
+        gb[i] += sy * gd * is;
+        gsb -= sy * gd * bary * is;
+        gbary -= sy * sb * gd * is;
+        gs -= gd * dy * is;
       }
       ge[i] = gbary * is;
       gs -= gbary * bary * is;
     }
-    T gX[3] = {0, 0, 0}, gY[3] = {0, 0, 0}, gZc[3] = {0, 0, 0}, gW[3] = {0, 0, 0};
+    double gXs[3] = {0, 0, 0}, gYs[3] = {0, 0, 0}, gX[3] = {0, 0, 0}, gY[3] = {0, 0, 0}, gZc[3] = {0, 0, 0},
+           gW[3] = {0, 0, 0};
     if (gZ) {
-      const T zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
-      const T wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
+      const double zn = e[0] * Z[0] + e[1] * Z[1] + e[2] * Z[2];
+      const double wn = e[0] * Wc[0] + e[1] * Wc[1] + e[2] * Wc[2];
       if (wn != 0) {
-        const T gzn = *gZ / wn, gwn = -*gZ * (zn / wn) / wn;
+        const double gzn = double(*gZ) / wn, gwn = -double(*gZ) * (zn / wn) / wn;
         for (int i = 0; i < 3; ++i) {
           ge[i] += gzn * Z[i] + gwn * Wc[i];
           gZc[i] = gzn * e[i];
@@ -1091,17 +1102,20 @@ struct Tri {
     }
     for (int i = 0; i < 3; ++i) {
       const int j = (i + 1) % 3, k = (i + 2) % 3;
-      const T gei = ge[i] + gs;
-      const T gai = ga[i] + gsa + gei * x, gbi = gb[i] + gsb + gei * y, gci = gei;
+      const double gei = ge[i] + gs, gai = ga[i] + gsa, gbi = gb[i] + gsb;
+      // e_i = Xs_j Ys_k - Ys_j Xs_k
+      gXs[j] += gei * Ys[k], gYs[k] += gei * Xs[j], gYs[j] -= gei * Xs[k], gXs[k] -= gei * Ys[j];
+      // a_i = Y_j W_k - W_j Y_k
       gY[j] += gai * Wc[k], gW[k] += gai * Y[j], gW[j] -= gai * Y[k], gY[k] -= gai * Wc[j];
+      // b_i = W_j X_k - X_j W_k
       gW[j] += gbi * X[k], gX[k] += gbi * Wc[j], gX[j] -= gbi * Wc[k], gW[k] -= gbi * X[j];
-      gX[j] += gci * Y[k], gY[k] += gci * X[j], gY[j] -= gci * X[k], gX[k] -= gci * Y[j];
     }
     for (int i = 0; i < 3; ++i) {
-      g[4 * i] = gX[i] * sc;
-      g[4 * i + 1] = gY[i] * sc;
-      g[4 * i + 2] = gZc[i] * sc;
-      g[4 * i + 3] = gW[i] * sc;
+      // Xs = X - x W, Ys = Y - y W
+      g[4 * i] = T((gX[i] + gXs[i]) * sc);
+      g[4 * i + 1] = T((gY[i] + gYs[i]) * sc);
+      g[4 * i + 2] = T(gZc[i] * sc);
+      g[4 * i + 3] = T((gW[i] - x * gXs[i] - y * gYs[i]) * sc);
     }
   }
 };
@@ -1114,7 +1128,7 @@ struct Tri {
 // outputs, zeros on background, and the covered pixels in compact form
 // (flat index order), so no nonzero / gather / scatter on the Python side.
 std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
-                                            bool packed, int64_t offset) {
+                                            bool packed, int64_t offset, bool derivatives) {
   DT_CHECK(pos.is_cpu() && pos.dim() == 3 && pos.size(2) == 4 && faces.dim() == 2 &&
                   faces.size(1) == 3 && faces.scalar_type() == kInt64 && tri_id.dim() == 3 &&
                   tri_id.scalar_type() == kInt64 && tri_id.size(0) == pos.size(0),
@@ -1146,15 +1160,17 @@ std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
   // ones, the bound of a mostly covered image).
   auto dense = [&](IntArrayRef shape, Options o) { return empty(shape, o); };
   std::vector<Tensor> out{idx};
+  // Without derivatives their outputs are empty [0] tensors, never written.
+  auto none = [&] { return empty({0}, opt); };
   if (packed) {
     out.push_back(dense({B, H, W, 4}, opt));  // rast: (b0, b1, depth, id + 1 + offset), 0 on background
-    out.push_back(dense({B, H, W, 4}, opt));  // db: (db0/dX, db0/dY, db1/dX, db1/dY)
+    out.push_back(derivatives ? dense({B, H, W, 4}, opt) : none());  // db: (db0/dX, db0/dY, db1/dX, db1/dY)
   } else {
-    for (auto k : {3, 3, 3}) out.push_back(empty({N, k}, opt));  // compact bary, d/dcolumn, d/drow
+    out.push_back(empty({N, 3}, opt));  // compact bary, d/dcolumn, d/drow
+    for (int k = 0; k < 2; ++k) out.push_back(derivatives ? empty({N, 3}, opt) : none());
     out.push_back(dense({B, H, W, 3}, opt));
     out.push_back(dense({B, H, W}, opt));
-    out.push_back(dense({B, H, W, 3}, opt));
-    out.push_back(dense({B, H, W, 3}, opt));
+    for (int k = 0; k < 2; ++k) out.push_back(derivatives ? dense({B, H, W, 3}, opt) : none());
   }
   DT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "raster_fragments", [&] {
     using T = scalar_t;
@@ -1162,18 +1178,19 @@ std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
     int64_t* pidx = idx.mutable_data_ptr<int64_t>();
     std::vector<T*> o;
     for (size_t i = 1; i < out.size(); ++i) o.push_back(out[i].mutable_data_ptr<T>());
-    const T sx = T(2.0 / double(W)), sy = T(-2.0 / double(H));
-    const T hx = T(2.0 / double(W)), hy = T(2.0 / double(H));
+    // Pixel centres and scales in double, as the torch path's (_pixels).
+    const double sx = 2.0 / double(W), sy = -2.0 / double(H);
+    const double hx = 2.0 / double(W), hy = 2.0 / double(H);
     constexpr int64_t kRows = 8;  // rows an item
     dynamic_for((rows + kRows - 1) / kRows, [&](auto&& next_block) {
-      T b[3], dx[3], dy[3];
-      Tri<T> tri;
+      T b[3] = {}, dx[3] = {}, dy[3] = {};
+      Tri tri{};  // value-initialised: gcc cannot see that load() runs before the first use
       int64_t loaded = -1;  // the (batch, face) in tri
       for (int64_t blk; (blk = next_block()) >= 0;)
       for (int64_t r = blk * kRows; r < std::min(rows, (blk + 1) * kRows); ++r) {
         const int64_t bi = r / H, row = r - bi * H;
         // _pixel_centres: (i + 0.5) * (2 / n) - 1, negated for rows.
-        const T y = -((T(row) + T(0.5)) * hy - T(1));
+        const double y = -((double(row) + 0.5) * hy - 1.0);
         int64_t n = first[r];
         int64_t bg = r * W;  // the current background run is [bg, p)
         auto zero_run = [&](int64_t end) {
@@ -1181,9 +1198,11 @@ std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
           const size_t m = size_t(end - bg) * sizeof(T);
           if (packed) {
             std::memset(o[0] + 4 * bg, 0, 4 * m);
-            std::memset(o[1] + 4 * bg, 0, 4 * m);
+            if (derivatives) std::memset(o[1] + 4 * bg, 0, 4 * m);
           } else {
-            for (int k : {3, 5, 6}) std::memset(o[k] + 3 * bg, 0, 3 * m);
+            std::memset(o[3] + 3 * bg, 0, 3 * m);
+            if (derivatives)
+              for (int k : {5, 6}) std::memset(o[k] + 3 * bg, 0, 3 * m);
             std::memset(o[4] + bg, 0, m);
           }
         };
@@ -1205,20 +1224,23 @@ std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
             tri.load(pp, rows3);
             loaded = bi * F + f;
           }
-          const T x = (T(col) + T(0.5)) * hx - T(1);
-          const T z = tri.eval(x, y, sx, sy, b, dx, dy);
+          const double x = (double(col) + 0.5) * hx - 1.0;
+          const T z = tri.eval(x, y, sx, sy, b, derivatives ? dx : nullptr, dy);
           pidx[n] = p;
           if (packed) {
             T* ra = o[0] + 4 * p;
-            T* db = o[1] + 4 * p;
             ra[0] = b[0], ra[1] = b[1], ra[2] = z, ra[3] = T(f + 1 + offset);
-            db[0] = dx[0], db[1] = dy[0], db[2] = dx[1], db[3] = dy[1];
-          } else {
-            for (int k = 0; k < 3; ++k) {
-              o[0][3 * n + k] = o[3][3 * p + k] = b[k];
-              o[1][3 * n + k] = o[5][3 * p + k] = dx[k];
-              o[2][3 * n + k] = o[6][3 * p + k] = dy[k];
+            if (derivatives) {
+              T* db = o[1] + 4 * p;
+              db[0] = dx[0], db[1] = dy[0], db[2] = dx[1], db[3] = dy[1];
             }
+          } else {
+            for (int k = 0; k < 3; ++k) o[0][3 * n + k] = o[3][3 * p + k] = b[k];
+            if (derivatives)
+              for (int k = 0; k < 3; ++k) {
+                o[1][3 * n + k] = o[5][3 * p + k] = dx[k];
+                o[2][3 * n + k] = o[6][3 * p + k] = dy[k];
+              }
             o[4][p] = z;
           }
           ++n;
@@ -1272,13 +1294,13 @@ Tensor raster_fragments_backward(Tensor pos, Tensor faces, Tensor tri_id,
     const bool has_dx = packed ? g[1] != nullptr : (g[1] || g[5]);
     const bool has_dy = packed ? g[1] != nullptr : (g[2] || g[6]);
     T* pacc = acc.mutable_data_ptr<T>();
-    const T sx = T(2.0 / double(W)), sy = T(-2.0 / double(H));
-    const T hx = T(2.0 / double(W)), hy = T(2.0 / double(H));
+    const double sx = 2.0 / double(W), sy = -2.0 / double(H);
+    const double hx = 2.0 / double(W), hy = 2.0 / double(H);
     const int64_t chunk = (N + threads - 1) / threads;
     const int64_t F = faces.size(0);
     parallel_for(0, threads, 1, [&](int64_t lo, int64_t hi) {
       T gc[12], gB[3], gDx[3], gDy[3], gZ = 0;
-      Tri<T> tri;
+      Tri tri{};  // value-initialised: gcc cannot see that load() runs before the first use
       for (int64_t t = lo; t < hi; ++t) {
         T* out = pacc + t * pos.numel();
         int64_t loaded = -1;
@@ -1305,8 +1327,8 @@ Tensor raster_fragments_backward(Tensor pos, Tensor faces, Tensor tri_id,
             tri.load(pp, rows3);
             loaded = bi * F + f;
           }
-          const T x = (T(col) + T(0.5)) * hx - T(1);
-          const T y = -((T(row) + T(0.5)) * hy - T(1));
+          const double x = (double(col) + 0.5) * hx - 1.0;
+          const double y = -((double(row) + 0.5) * hy - 1.0);
           tri.adjoint(x, y, sx, sy, has_b ? gB : nullptr, has_dx ? gDx : nullptr, has_dy ? gDy : nullptr,
                       has_z ? &gZ : nullptr, gc);
           for (int i = 0; i < 3; ++i)
