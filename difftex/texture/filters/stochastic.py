@@ -62,6 +62,12 @@ from .trilinear import Levels, trilinear_points
 STOCHASTIC_FILTERS = ("bilinear", "bicubic", "trilinear", "anisotropic", "ewa")
 # Uniforms per draw: [tap or texel (u, or along u), level, texel along v].
 UNIFORMS = 3
+# Every draw's pmf is mixed with the uniform one over its outcomes in this proportion (``defensive``), so
+# that no outcome whose weight or weight derivative is nonzero has a tiny probability: the gradient terms
+# ``dw / p`` stay bounded (at most ``n / DEFENSIVE`` times dw) and have finite variance; with p = w alone a
+# blend weight frac(D) or a bilinear weight t near 0 gives terms of size 1 / frac, whose variance diverges
+# (the integral of 1 / f). The values' weights w / p stay below 1 / (1 - DEFENSIVE).
+DEFENSIVE = 0.25
 
 
 def uniforms(points: int, draws: int, generator: Optional[torch.Generator], device: torch.device) -> Tensor:
@@ -82,22 +88,32 @@ class LevelDraw(NamedTuple):
     pdf: Tensor
 
 
+def defensive(p: Tensor, n: int | Tensor) -> Tensor:
+    """The mixture ``(1 - DEFENSIVE) p + DEFENSIVE / n`` of a pmf p over n outcomes with the uniform one."""
+    return (1 - DEFENSIVE) * p + DEFENSIVE / n
+
+
+def upper_probability(D: Tensor) -> Tensor:
+    """P(draw level ``floor(D) + 1``) [M]: ``defensive(frac(D), 2)`` where D blends two levels, else 0 (detached)."""
+    Dd = D.detach()
+    f = Dd - torch.floor(Dd)
+    return torch.where(f > 0, defensive(f, 2), 0.0)
+
+
 def draw_level(D: Tensor, u: Tensor) -> LevelDraw:
-    """Level ``floor(D) + 1`` with probability ``frac(D)``, else ``floor(D)``; D [M] clamped, u [M] float64."""
+    """Level ``floor(D) + 1`` with probability ``upper_probability(D)``, else ``floor(D)``; D [M], u [M] float64."""
     with torch.no_grad():
         Dd = D.detach()
-        k0 = torch.floor(Dd)
-        f = Dd - k0
-        upper = u < f.to(u.dtype)
-        return LevelDraw(k0 + upper.to(Dd.dtype), torch.where(upper, f, 1 - f))
+        p = upper_probability(Dd)
+        upper = u < p.to(u.dtype)
+        return LevelDraw(torch.floor(Dd) + upper.to(Dd.dtype), torch.where(upper, p, 1 - p))
 
 
 def level_weight(D: Tensor, draw: LevelDraw) -> Tensor:
-    """The drawn level's weight in the trilinear blend over its probability, ``w(D) / p``: [M], 1 in value.
+    """The drawn level's weight in the trilinear blend over its probability, ``w(D) / p``: [M].
 
     ``w`` is ``1 - (D - k)`` for the lower level k, ``D - (k' - 1)`` for the
-    upper level k' (the same float ops as the pdf, so the ratio is exactly 1);
-    differentiable in D.
+    upper level k'; differentiable in D.
     """
     upper = draw.level > D.detach()
     w = torch.where(upper, D - (draw.level - 1), 1 - (D - draw.level))
@@ -152,15 +168,17 @@ def levels_drawn(D: Tensor, levels: int) -> int:
 
 
 class TexelDraw(NamedTuple):
-    """A drawn texel per point of one level: its integer-valued ``col``, ``row`` [m] and probability ``pdf`` [m]."""
+    """A drawn texel per point of one level: integer-valued ``col``, ``row`` [m], its probability ``pdf`` [m]
+    and the ellipse's weight sum ``total`` [m] (detached, uv dtype)."""
 
     col: Tensor
     row: Tensor
     pdf: Tensor
+    total: Tensor
 
 
 def _segment_pick(point: Tensor, w: Tensor, m: int, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Per point, one of its pairs with probability ``w / sum w`` by inverse CDF: (pair index, pdf, sum) [m].
+    """Per point, one of its pairs with probability ``w / sum w`` by inverse CDF: (pair index, pdf, sum w) [m].
 
     point [n] sorted ascending (each point's pairs contiguous), every point
     owning a pair of positive weight; w [n] >= 0 float64; u [m] float64.
@@ -191,9 +209,16 @@ def draw_ewa_texel(H: int, W: int, uv: Tensor, sigma: Tensor, minor: Tensor, sca
         det = sxx * syy - sxy * sxy
         w = gaussian(rx - per_pair(frac[:, 0]), ry - per_pair(frac[:, 1]), per_pair(sxx), per_pair(sxy),
                      per_pair(syy), per_pair(det))
-        idx, pdf, _ = _segment_pick(point, w.to(torch.float64), uv.shape[0], u)
+        m = uv.shape[0]
+        w = w.to(torch.float64)
+        total = w.new_zeros(m).index_add(0, point, w)
+        count = torch.bincount(point, minlength=m).to(w.dtype)
+        # The Gaussian pmf mixed with the uniform one over the ellipse's texels (DEFENSIVE): the texels at
+        # the rim have weights near 0 but slopes that are not.
+        p = defensive(w / total.index_select(0, point), count.index_select(0, point))
+        idx, pdf, _ = _segment_pick(point, p, m, u)
         return TexelDraw(origin[:, 0] + rx.index_select(0, idx), origin[:, 1] + ry.index_select(0, idx),
-                         pdf.to(uv.dtype))
+                         pdf.to(uv.dtype), total.to(uv.dtype))
 
 
 def ewa_texel_estimate(lev: Tensor, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Tensor, full_h: int,
@@ -221,8 +246,7 @@ def ewa_texel_estimate(lev: Tensor, uv: Tensor, sigma: Tensor, minor: Tensor, sc
                         per_pair(syy), per_pair(det))
         total = wall.new_zeros(uv.shape[0]).index_add(0, point, wall)
     else:
-        # No gradient through the weights: w / sum w is the drawn pdf itself (ratio 1).
-        total = w / draw.pdf
+        total = draw.total  # no gradient through the weights: the sum the draw was made from
     vals = texels(lev[0].reshape(C, H * W), H, W, draw.col, draw.row, wrap_u, wrap_v, border)
     return vals * (w / total / draw.pdf)
 
@@ -286,13 +310,14 @@ def _texel_position(texture: Tensor, uv: Tensor, wrap_u: str, wrap_v: str) -> tu
 
 def _axis_pick(w: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
     """Per point a tap of w [..., K, M] with probability ``|w| / sum |w|`` over K; u [..., M]: (index, pdf) [..., M]."""
+    K = w.shape[-2]
     a = w.abs().to(torch.float64)
+    a = defensive(a / a.sum(-2, keepdim=True), K)
     cw = torch.cumsum(a, -2)
     total = cw[..., -1:, :]
     i = (cw <= u.unsqueeze(-2) * total).sum(-2, keepdim=True)
-    K = w.shape[-2]
     last = torch.where(a > 0, torch.arange(K, device=w.device).view(-1, 1), -1).amax(-2, keepdim=True)
-    i = torch.minimum(i, last)
+    i = torch.minimum(i, last.clamp(min=0))  # no positive weight (NaN uv): tap 0, whose NaN weight shows
     return i.squeeze(-2), (a.gather(-2, i) / total).squeeze(-2)
 
 
@@ -344,4 +369,4 @@ def stochastic_separable(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wr
 __all__ = ["STOCHASTIC_FILTERS", "UNIFORMS", "uniforms", "LevelDraw", "draw_level", "level_weight",
            "trilinear_estimate", "stochastic_trilinear", "levels_drawn", "TexelDraw", "draw_ewa_texel",
            "ewa_texel_estimate", "stochastic_ewa", "SeparableDraw", "draw_separable", "separable_estimate",
-           "stochastic_separable"]
+           "stochastic_separable", "DEFENSIVE", "defensive", "upper_probability"]
