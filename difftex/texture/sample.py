@@ -97,17 +97,19 @@ def sample(
         stochastic: 0 (default): the deterministic filter. k >= 1 (True
             is 1): stochastic texture filtering (Pharr et al. 2024), the
             mean of k independent draws a pixel, each reading one tap drawn
-            from the filter's own weights: "trilinear" one bilinear tap on a
-            level drawn by the blend weight; "anisotropic" one probe of the
-            line, then that; "ewa" a level, then one texel drawn by its
-            normalised Gaussian weight; "bilinear" / "bicubic" one texel
-            drawn by |weight| (the sign and the normaliser carried). Other
-            filters raise. Unbiased: the expectation over the draws is the
-            deterministic filter's value, and the expectation of the
-            gradient its gradient for texture, uv, uv_dx, uv_dy and
-            lod_bias (except at an exact integer level, where the level
-            derivative is 0); the variance falls as 1 / k
-            (``difftex.texture.filters.stochastic``, docs/filters.md).
+            from the filter's own weights (3/4 of each draw; 1/4 uniform
+            over the same taps, which keeps the gradients' variance finite):
+            "trilinear" one bilinear tap on a level drawn by the blend
+            weight; "anisotropic" one probe of the line, then that; "ewa" a
+            level, then one texel drawn by its normalised Gaussian weight;
+            "bilinear" / "bicubic" one texel drawn by |weight| (the sign and
+            the normaliser carried). Other filters raise. Unbiased: the
+            expectation over the draws is the deterministic filter's value,
+            and the expectation of the gradient its gradient for texture,
+            uv, uv_dx, uv_dy and lod_bias (except at an exact integer
+            level, where the level derivative is 0); the variance falls as
+            1 / k (``difftex.texture.filters.stochastic``,
+            docs/stochastic.md).
         generator: the ``torch.Generator`` of the draws (on uv's device),
             or None for torch's default generator. All draws come from one
             ``torch.rand`` call per ``sample`` call, so a seeded generator
@@ -170,7 +172,7 @@ def sample(
         # An empty image: nothing to read, but the result stays in the inputs' graph.
         parts = [t for t in (texture, uv, *derivs, bias) if isinstance(t, Tensor)]
         return sum(t.reshape(-1)[:0].reshape(B, C, Ho, Wo) for t in parts)
-    u = None if not draws else uniforms(B * Ho * Wo, draws, generator, uv.device)
+    u = None if not draws else uniforms(filter, B * Ho * Wo, draws, generator, uv.device)
     if filter in MIP_FILTERS:
         if pyramid is None:
             pyramid = texture
@@ -178,10 +180,11 @@ def sample(
                            wrap_u, wrap_v, border_value, u)
     if u is not None:
         # k draws of each pixel as k neighbouring points, averaged.
-        pts = uv.expand(B, -1, -1, -1).reshape(B, Ho * Wo, 2).repeat_interleave(draws, 1)
+        pts = uv.expand(B, -1, -1, -1).reshape(B, Ho * Wo, 2)
+        pts = pts if draws == 1 else pts.repeat_interleave(draws, 1)
         out = stochastic_separable(texture, pts, SEPARABLE[filter], wrap_u, wrap_v, border_value,
                                    u.view(B, Ho * Wo * draws, -1))
-        return out.view(B, C, Ho, Wo, draws).mean(-1)
+        return out.view(B, C, Ho, Wo) if draws == 1 else out.view(B, C, Ho, Wo, draws).mean(-1)
     return separable_sample(texture, uv if uv.shape[0] == B else uv.expand(B, -1, -1, -1), SEPARABLE[filter],
                             wrap_u, wrap_v, border_value)
 
@@ -234,7 +237,7 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
     same values and gradients as the full chain; a view that only magnifies
     builds none): by the reading node of the bilinear-tap filters
     (``TexturePyramid``), here for EWA, which reads the full chain.
-    With ``u`` ([B * Ho * Wo, k, UNIFORMS] uniforms) the stochastic filter:
+    With ``u`` ([B * Ho * Wo, k, R] uniforms, ``filters.stochastic.uniforms``) the stochastic filter:
     each point becomes k neighbouring points, one draw each, averaged.
     """
     base = pyramid.levels[0] if isinstance(pyramid, Mipmap) else pyramid.base if isinstance(pyramid, Ripmap) \
@@ -285,7 +288,8 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
 
     def _run_stochastic(lv: Levels, sl: slice) -> Tensor:
         k = u.shape[1]
-        rep = lambda t: t[sl].repeat_interleave(k, 0)  # noqa: E731 (k draws of a point: k neighbouring points)
+        # k draws of a point: k neighbouring points (one draw: the points as they are).
+        rep = (lambda t: t[sl]) if k == 1 else (lambda t: t[sl].repeat_interleave(k, 0))  # noqa: E731
         uk = u[sl].reshape(-1, u.shape[2])
         if filter == "ewa":
             b = rep(bias) if isinstance(bias, Tensor) and bias.dim() == 1 else bias
@@ -294,7 +298,7 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
         else:
             out = stochastic_trilinear(lv, rep(pts), rep(D), uk, wrap_u, wrap_v, border,
                                        None if axis is None else rep(axis), None if count is None else rep(count))
-        return out.view(out.shape[0], -1, k).mean(-1)
+        return out if k == 1 else out.view(out.shape[0], -1, k).mean(-1)
 
     def levels_of(i: int | None) -> Levels:
         if levels is None:

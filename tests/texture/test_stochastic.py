@@ -230,7 +230,7 @@ def test_separable_estimate_gradcheck(kind):
     tex = TEXTURE[:, :, :8, :8].clone().requires_grad_()
     g = torch.Generator().manual_seed(3)
     uv = (torch.rand(1, 7, 2, generator=g, dtype=torch.float64) * 1.6 - 0.3).requires_grad_()
-    draw = st.draw_separable(tex, uv, kind, "repeat", "border", torch.rand(1, 7, 3, generator=g,
+    draw = st.draw_separable(tex, uv, kind, "repeat", "border", torch.rand(1, 7, 2, generator=g,
                                                                             dtype=torch.float64))
     fn = lambda tex, uv: st.separable_estimate(tex, uv, kind, "repeat", "border", 0.25, draw)  # noqa: E731
     assert torch.autograd.gradcheck(fn, (tex, uv))

@@ -2,47 +2,58 @@
 
 Pharr, Wronski, Salvi, Fajardo, "Filtering After Shading With Stochastic
 Texture Filtering" (2024): a filter ``f = sum_i w_i t_i`` is the expectation
-of ``(w_i / p_i) t_i`` with tap ``i`` drawn with probability ``p_i``; with
-``p_i = |w_i| / sum_j |w_j|`` the estimator reads one tap and is exact
-in expectation, with or without negative weights (bicubic).
+of ``(w_i / p_i) t_i`` with tap ``i`` drawn with probability ``p_i``, for
+any pmf p that is positive wherever ``w_i`` is not 0; it reads one tap and is
+exact in expectation, negative weights (bicubic) included: the sign and the
+normaliser ride in ``w / p``. The paper's choice, importance sampling the
+filter, is ``p = |w| / sum |w|``; here each pmf is that one mixed with the
+uniform pmf over the same taps (``DEFENSIVE`` = 1/4 of it, "defensive"
+importance sampling), for the gradients (below).
 
-Every estimator here is written as ``(w(theta) / p) * t(theta)``: the draw
-(which tap) and its probability ``p`` are fixed from detached inputs, and
-``w``, the tap's weight in the deterministic filter, is recomputed
-differentiably. The forward value is the tap's value (``w / p`` is 1, or
-the sign of a negative weight times the normaliser), and the derivative
-with the draw held fixed is ``dw / p * t + w / p * dt``, whose expectation
-over the draw is ``sum_i dw_i t_i + w_i dt_i``: the deterministic filter's
-gradient, for every input, wherever the filter's weights are smooth. That
-includes the parameters the weights depend on (the level blend's D, hence
-uv_dx / uv_dy / lod_bias; EWA's ellipse and sample point), which a plain
-"read the drawn tap" would leave with no gradient at all. Its price is
-variance: the level term is ``+-t / p``, large where the drawn level had a
-small probability.
+Every estimator is written as ``(w(theta) / p) * t(theta)``: the draw (which
+tap) and its probability ``p`` are fixed from detached inputs, and ``w``,
+the tap's weight in the deterministic filter, is recomputed differentiably.
+The derivative with the draw held fixed is ``dw / p * t + w / p * dt``,
+whose expectation over the draw is ``sum_i dw_i t_i + w_i dt_i``: the
+deterministic filter's gradient, for every input, wherever the filter's
+weights are smooth. That includes what the weights depend on (the level
+blend's D, hence uv_dx / uv_dy / lod_bias; EWA's ellipse and sample point;
+a bilinear / bicubic texel's uv), which a plain "read the drawn tap" would
+leave with no gradient at all. With ``p = w`` alone the terms ``dw / p``
+grow as ``1 / w`` where a weight is small but its slope is not (a blend
+weight ``frac(D)`` near 0, a bilinear weight near a texel centre, an EWA
+texel on the ellipse's rim): an infinite variance in the mean (the integral
+of ``1 / f``), seen in the tests as means 26 standard errors off the exact
+gradient where a tap of probability 0.009 was never drawn. The uniform
+share bounds every ``dw / p`` by ``n / DEFENSIVE`` times dw, at the price
+of value weights ``w / p`` up to ``1 / (1 - DEFENSIVE)``.
 
-What is drawn, per filter (``u`` [M, 3] uniforms in [0, 1) per point):
+What is drawn, per filter (``u`` [M, R] uniforms in [0, 1) per point, ``ROLES``):
 
-- trilinear: the level, ``floor(D) + 1`` with probability ``frac(D)``
-  (``u[:, 1]``), then one bilinear tap there. The bilinear tap rather than
-  one of its four texels: it keeps the uv gradient local (the tap's own
-  slope, no variance from a texel draw) and it is the native kernel's read
-  (``trilinear_points`` with ``nearest_mip`` on the drawn integer level).
+- trilinear: the level, ``floor(D) + 1`` with probability
+  ``(3/4) frac(D) + 1/8`` where D blends two levels (``u[:, -1]``; an
+  integer D reads its one level), then one bilinear tap there. The bilinear
+  tap rather than one of its four texels: it keeps the uv gradient local
+  (the tap's own slope, no variance from a texel draw) and it is the native
+  kernel's read (``trilinear_points`` with ``nearest_mip`` on the drawn
+  integer level).
 - anisotropic: one of the N probes along the major axis, uniformly
-  (``u[:, 0]``; the weights are all 1/N), then the trilinear draw there.
+  (``u[:, 0]``; the weights are all 1/N, so ``w / p = 1``), then the
+  trilinear draw there.
 - ewa: the level as trilinear, then one texel of that level's ellipse
-  with probability ``w_i / sum_j w_j``, the exact normalised Gaussian
-  weights of the deterministic filter (``u[:, 0]``, an inverse-CDF walk
-  over the ellipse's texels, the same enumeration as ``ewa.py``).
+  by the exact normalised Gaussian weights of the deterministic filter,
+  mixed (``u[:, 0]``, an inverse-CDF walk over the ellipse's texels, the
+  same enumeration as ``ewa.py``).
 - bilinear / bicubic (one level): one texel of the 2x2 / 4x4, drawn per
-  axis with probability ``|w_x| / sum |w_x|`` (``u[:, 0]``) and likewise
-  along v (``u[:, 2]``): the separable weights make ``|w|`` a product, so
-  two independent draws draw it exactly. The sign of a negative Keys
-  weight and the normaliser ``sum |w|`` ride in ``w / p``.
+  axis by ``|w_x| / sum |w_x|`` mixed (``u[:, 0]``), likewise along v
+  (``u[:, 1]``): the separable weights make the pmf a product, so two
+  independent draws draw it exactly.
 
 Not unbiased: at an exact integer level D (a set of measure zero for a
 continuous footprint) the level-blend derivative, which the deterministic
 filter takes from below (``t_k - t_(k-1)``, DESIGN.md), is 0 here (one
-level is read there, with probability 1).
+level is read there). Everything else, values and first derivatives, is
+unbiased; the tests check it exactly by enumerating the draws.
 """
 from __future__ import annotations
 
@@ -60,8 +71,9 @@ from .trilinear import Levels, trilinear_points
 
 # The filters with a stochastic mode (``sample(..., stochastic=k)``).
 STOCHASTIC_FILTERS = ("bilinear", "bicubic", "trilinear", "anisotropic", "ewa")
-# Uniforms per draw: [tap or texel (u, or along u), level, texel along v].
-UNIFORMS = 3
+# Uniforms per draw and filter, in this order: the level's last where there is one.
+ROLES = {"trilinear": ("level",), "anisotropic": ("probe", "level"), "ewa": ("texel", "level"),
+         "bilinear": ("texel along u", "texel along v"), "bicubic": ("texel along u", "texel along v")}
 # Every draw's pmf is mixed with the uniform one over its outcomes in this proportion (``defensive``), so
 # that no outcome whose weight or weight derivative is nonzero has a tiny probability: the gradient terms
 # ``dw / p`` stay bounded (at most ``n / DEFENSIVE`` times dw) and have finite variance; with p = w alone a
@@ -70,15 +82,17 @@ UNIFORMS = 3
 DEFENSIVE = 0.25
 
 
-def uniforms(points: int, draws: int, generator: Optional[torch.Generator], device: torch.device) -> Tensor:
-    """All the random numbers of one ``sample`` call, drawn up front: [points, draws, UNIFORMS] float64 in [0, 1).
+def uniforms(filter: str, points: int, draws: int, generator: Optional[torch.Generator],
+             device: torch.device) -> Tensor:
+    """All the random numbers of one ``sample`` call, drawn up front: [points, draws, R] float64 in [0, 1).
 
-    One ``torch.rand`` call in a fixed order (point, draw, role), so a seeded
+    R = ``len(ROLES[filter])``. One ``torch.rand`` call in a fixed order (point, draw, role), so a seeded
     generator gives the same draws whatever the thread count or the order
     the filters later consume them in. float64: a float32 uniform has 2^24
     steps, too coarse to draw a tap of probability 1e-8 at its rate.
     """
-    return torch.rand((points, draws, UNIFORMS), generator=generator, dtype=torch.float64, device=device)
+    return torch.rand((points, draws, len(ROLES[filter])), generator=generator, dtype=torch.float64,
+                      device=device)
 
 
 class LevelDraw(NamedTuple):
@@ -140,7 +154,7 @@ def stochastic_trilinear(levels: Levels, uv: Tensor, D: Tensor, u: Tensor, wrap_
 
     Args:
         levels, uv [M, 2], D [M], axis [M, 2], count [M]: as ``trilinear_points``.
-        u: [M, UNIFORMS] float64 uniforms (``uniforms``).
+        u: [M, R] float64 uniforms (``uniforms``): the probe (anisotropic) first, the level last.
 
     Returns:
         [C, M], whose expectation over ``u`` is ``trilinear_points``'s value,
@@ -154,7 +168,7 @@ def stochastic_trilinear(levels: Levels, uv: Tensor, D: Tensor, u: Tensor, wrap_
             i = torch.minimum(torch.floor(u[:, 0] * n), n - 1).to(uv.dtype)
             offset = ((i + 0.5) / count.to(uv.dtype) - 0.5).unsqueeze(-1)
         uv = torch.addcmul(uv, axis, offset)
-    return trilinear_estimate(levels, uv, D, draw_level(D, u[:, 1]), wrap_u, wrap_v, border)
+    return trilinear_estimate(levels, uv, D, draw_level(D, u[:, -1]), wrap_u, wrap_v, border)
 
 
 def levels_drawn(D: Tensor, levels: int) -> int:
@@ -253,7 +267,7 @@ def ewa_texel_estimate(lev: Tensor, uv: Tensor, sigma: Tensor, minor: Tensor, sc
 
 def stochastic_ewa(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse, lod_bias: Tensor | float,
                    max_aniso: float, wrap_u: str, wrap_v: str, border: float, u: Tensor) -> Tensor:
-    """One draw of ``ewa_points`` per point (same arguments, plus ``u`` [M, UNIFORMS] float64): [C, M].
+    """One draw of ``ewa_points`` per point (same arguments, plus ``u`` [M, 2] float64: texel, level): [C, M].
 
     The level as ``stochastic_trilinear``, then one texel of that level's
     ellipse by its normalised Gaussian weight. NaN where uv is not finite.
@@ -268,7 +282,7 @@ def stochastic_ewa(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ell
     sigma, minor, log2_minor = covariance(fp, ell, max_aniso)
     D = level(log2_minor, lod_bias, n)
     scale = torch.exp2(fp.log2_scale)
-    ldraw = draw_level(D, u[:, 1])
+    ldraw = draw_level(D, u[:, -1])
     factor = level_weight(D, ldraw)
     out = uv.new_zeros((levels[0].shape[1], uv.shape[0]))
     lev_id = ldraw.level.long()
@@ -322,13 +336,13 @@ def _axis_pick(w: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def draw_separable(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, u: Tensor) -> SeparableDraw:
-    """One texel of the 2x2 ("linear") or 4x4 ("cubic") kernel per point of uv [B, M, 2]; u [B, M, UNIFORMS]."""
+    """One texel of the 2x2 ("linear") or 4x4 ("cubic") kernel per point of uv [B, M, 2]; u [B, M, 2]."""
     with torch.no_grad():
         _, t = _texel_position(texture, uv.detach(), wrap_u, wrap_v)
         wx, _ = _axis_weights(t[..., 0], kind, False)
         wy, _ = _axis_weights(t[..., 1], kind, False)
         ix, px = _axis_pick(wx, u[..., 0])
-        iy, py = _axis_pick(wy, u[..., 2])
+        iy, py = _axis_pick(wy, u[..., 1])
         first = _FIRST[kind]
         return SeparableDraw(ix + first, iy + first, (px * py).to(uv.dtype))
 
@@ -359,14 +373,14 @@ def stochastic_separable(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wr
                          u: Tensor) -> Tensor:
     """One draw of ``separable_sample(texture, uv, kind, ...)`` per point (kind "linear" / "cubic"): [B, C, M].
 
-    u: [B, M, UNIFORMS] float64. The expectation over u is the filter's value
+    u: [B, M, 2] float64 (along u, along v). The expectation over u is the filter's value
     and its texture and uv gradients (module docstring).
     """
     return separable_estimate(texture, uv, kind, wrap_u, wrap_v, border,
                               draw_separable(texture, uv, kind, wrap_u, wrap_v, u))
 
 
-__all__ = ["STOCHASTIC_FILTERS", "UNIFORMS", "uniforms", "LevelDraw", "draw_level", "level_weight",
+__all__ = ["STOCHASTIC_FILTERS", "ROLES", "uniforms", "LevelDraw", "draw_level", "level_weight",
            "trilinear_estimate", "stochastic_trilinear", "levels_drawn", "TexelDraw", "draw_ewa_texel",
            "ewa_texel_estimate", "stochastic_ewa", "SeparableDraw", "draw_separable", "separable_estimate",
            "stochastic_separable", "DEFENSIVE", "defensive", "upper_probability"]
