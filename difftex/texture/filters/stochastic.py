@@ -62,6 +62,7 @@ from typing import NamedTuple, Optional, Sequence
 import torch
 from torch import Tensor
 
+from ... import _native as native
 from ..lod import Ellipse, Footprint, level
 from ..wrap import drop_periods
 from .ewa import _far_clamped, _pairs, covariance, gaussian, level_ellipse, texels
@@ -144,7 +145,18 @@ def trilinear_estimate(levels: Levels, uv: Tensor, D: Tensor, draw: LevelDraw, w
     """
     # nearest_mip on an integer level reads exactly that level's bilinear tap: the native kernel's read on the
     # CPU, the torch path elsewhere (NaN uv handled there too).
-    tap = trilinear_points(levels, uv, draw.level, wrap_u, wrap_v, border, nearest_mip=True)
+    if native.kernel(uv) is None:  # the torch path groups the points by level itself (mip_blend)
+        tap = trilinear_points(levels, uv, draw.level, wrap_u, wrap_v, border, nearest_mip=True)
+    else:
+        # The kernel reads the points in order; drawn at random, neighbouring points alternate between two
+        # levels, which cost 9.3 ms fwd+bwd against 5.5 ms for the same reads at the smooth round(D) (65k
+        # points, one thread). Read them grouped by level (a stable sort keeps raster order within a
+        # level; 7.8 ms with the sort and the permutations) and put them back.
+        with torch.no_grad():
+            perm = torch.sort(draw.level.to(torch.uint8 if len(levels) <= 256 else torch.int64), stable=True).indices
+            inv = torch.empty_like(perm).index_copy_(0, perm, torch.arange(perm.numel(), device=perm.device))
+        tap = trilinear_points(levels, uv.index_select(0, perm), draw.level.index_select(0, perm), wrap_u, wrap_v,
+                               border, nearest_mip=True).index_select(1, inv)
     return tap * level_weight(D, draw)
 
 
