@@ -85,9 +85,19 @@ def run(filter: str, scene: str, k: int, seed: int, *, texture=TEXTURE, grads: b
     return out.detach(), gt, gu, torch.zeros_like(dx) if gd is None else gd
 
 
-def groups(filter: str, scene: str, k: int, seed: int = 0, **kw):
-    """GROUPS independent calls of k draws each, stacked per output: a list of [GROUPS, ...]."""
-    parts = [run(filter, scene, k, seed * 1000 + i, **kw) for i in range(GROUPS)]
+def groups(filter: str, scene: str, k: int, seed: int = 0, grads: bool = True):
+    """GROUPS independent estimates of k draws each, stacked per output: a list of [GROUPS, ...].
+
+    Values alone: one call over a batch of GROUPS copies of the scene (each batch entry draws its own);
+    with gradients, one call a group (each needs its own texture gradient).
+    """
+    if not grads:
+        make, wrap = SCENES[scene]
+        uv, dx, dy = (t.expand(GROUPS, -1, -1, -1) for t in make(8 if filter == "ewa" else 12))
+        out = sample(TEXTURE, uv, filter=filter, wrap=wrap, uv_dx=dx, uv_dy=dy, max_aniso=8, stochastic=k,
+                     generator=torch.Generator().manual_seed(seed))
+        return [out.unsqueeze(1)]
+    parts = [run(filter, scene, k, seed * 1000 + i) for i in range(GROUPS)]
     return [torch.stack(p) for p in zip(*parts)]
 
 
