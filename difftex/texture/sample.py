@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Optional, Union
 
 import torch
@@ -12,6 +13,8 @@ from .filters.ewa import ewa_points
 from .filters.ripmap import ripmap_points
 from .filters.sat import sat_points
 from .filters.separable import separable_sample
+from .filters.stochastic import (STOCHASTIC_FILTERS, stochastic_ewa, stochastic_separable, stochastic_trilinear,
+                                 uniforms)
 from .filters.trilinear import Levels, TexturePyramid, trilinear_points
 from .lod import ellipse, footprint
 from .options import (BOX_FILTERS, DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_bias, check_filter,
@@ -35,6 +38,8 @@ def sample(
     lod_bias: Union[float, Tensor] = 0.0,
     max_aniso: float = 16,
     tolerance: float = DEFAULT_TOLERANCE,
+    stochastic: int = 0,
+    generator: Optional[torch.Generator] = None,
 ) -> Tensor:
     """Sample a texture at uv coordinates.
 
@@ -89,6 +94,27 @@ def sample(
             take ``1 + tolerance`` times fewer taps (rounded up) and blur
             more across the footprint. The default 0.1 stays within 0.5 dB
             of "anisotropic" at the same max_aniso on the test scenes.
+        stochastic: 0 (default): the deterministic filter. k >= 1 (True
+            is 1): stochastic texture filtering (Pharr et al. 2024), the
+            mean of k independent draws a pixel, each reading one tap drawn
+            from the filter's own weights (3/4 of each draw; 1/4 uniform
+            over the same taps, which keeps the gradients' variance finite):
+            "trilinear" one bilinear tap on a level drawn by the blend
+            weight; "anisotropic" one probe of the line, then that; "ewa" a
+            level, then one texel drawn by its normalised Gaussian weight;
+            "bilinear" / "bicubic" one texel drawn by |weight| (the sign and
+            the normaliser carried). Other filters raise. Unbiased: the
+            expectation over the draws is the deterministic filter's value,
+            and the expectation of the gradient its gradient for texture,
+            uv, uv_dx, uv_dy and lod_bias (except at an exact integer
+            level, where the level derivative is 0); the variance falls as
+            1 / k (``difftex.texture.filters.stochastic``,
+            docs/stochastic.md).
+        generator: the ``torch.Generator`` of the draws (on uv's device),
+            or None for torch's default generator. All draws come from one
+            ``torch.rand`` call per ``sample`` call, so a seeded generator
+            repeats the result bit for bit, whatever the thread count.
+            Ignored when ``stochastic`` is 0.
 
     Returns:
         [B, C, Ho, Wo], same dtype and device as the inputs.
@@ -105,8 +131,11 @@ def sample(
     Raises ValueError naming the argument on bad shapes, batch mismatch,
     different devices, an unknown filter / wrap, missing derivatives for a
     mip filter, ``max_aniso`` outside [1, 1024], ``tolerance < 0`` or a
-    non-finite ``border_value``; TypeError on non-float tensors, mixed dtypes
-    or a ``border_value`` that is not a number.
+    non-finite ``border_value``, ``stochastic < 0``, ``stochastic`` with a
+    filter that has no stochastic mode or a ``generator`` on another device
+    type; TypeError on non-float tensors, mixed dtypes, a ``border_value``
+    that is not a number, a ``stochastic`` that is not an int or a
+    ``generator`` that is not a ``torch.Generator``.
     """
     pyramid = None
     if isinstance(texture, Ripmap):
@@ -128,6 +157,7 @@ def sample(
     max_aniso = check_number("max_aniso", max_aniso, 1, MAX_ANISO)
     border_value = check_number("border_value", border_value, -math.inf)
     tolerance = check_number("tolerance", tolerance, 0)
+    draws = _check_stochastic(stochastic, generator, filter, uv)
     _, Ho, Wo, _ = uv.shape
     derivs = _check_derivatives(filter, uv, texture, uv_dx, uv_dy)
     bias = check_bias(lod_bias, uv, "uv", texture, "texture")
@@ -142,13 +172,42 @@ def sample(
         # An empty image: nothing to read, but the result stays in the inputs' graph.
         parts = [t for t in (texture, uv, *derivs, bias) if isinstance(t, Tensor)]
         return sum(t.reshape(-1)[:0].reshape(B, C, Ho, Wo) for t in parts)
+    u = None if not draws else uniforms(filter, B * Ho * Wo, draws, generator, uv.device)
     if filter in MIP_FILTERS:
         if pyramid is None:
             pyramid = texture
         return _sample_mip(pyramid, uv, derivs[0], derivs[1], bias, B, filter, max_aniso, tolerance,
-                           wrap_u, wrap_v, border_value)
+                           wrap_u, wrap_v, border_value, u)
+    if u is not None:
+        # k draws of each pixel as k neighbouring points, averaged.
+        pts = uv.expand(B, -1, -1, -1).reshape(B, Ho * Wo, 2)
+        pts = pts if draws == 1 else pts.repeat_interleave(draws, 1)
+        out = stochastic_separable(texture, pts, SEPARABLE[filter], wrap_u, wrap_v, border_value,
+                                   u.view(B, Ho * Wo * draws, -1))
+        return out.view(B, C, Ho, Wo) if draws == 1 else out.view(B, C, Ho, Wo, draws).mean(-1)
     return separable_sample(texture, uv if uv.shape[0] == B else uv.expand(B, -1, -1, -1), SEPARABLE[filter],
                             wrap_u, wrap_v, border_value)
+
+
+def _check_stochastic(stochastic: object, generator: object, filter: str, uv: Tensor) -> int:
+    """The number of draws a pixel (0: deterministic); TypeError / ValueError naming the argument."""
+    if isinstance(stochastic, bool):
+        stochastic = int(stochastic)
+    if not isinstance(stochastic, numbers.Integral):
+        raise TypeError(f"stochastic: expected an int >= 0 (draws a pixel), got {type(stochastic).__name__}")
+    if stochastic < 0:
+        raise ValueError(f"stochastic: expected an int >= 0 (draws a pixel), got {stochastic}")
+    if not stochastic:
+        return 0
+    if filter not in STOCHASTIC_FILTERS:
+        raise ValueError(f"stochastic: filter {filter!r} has no stochastic mode; expected one of "
+                         f"{STOCHASTIC_FILTERS}")
+    if generator is not None:
+        if not isinstance(generator, torch.Generator):
+            raise TypeError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
+        if generator.device.type != uv.device.type:
+            raise ValueError(f"generator: on {generator.device}, expected uv's device type {uv.device.type}")
+    return int(stochastic)
 
 
 def _check_derivatives(filter: str, uv: Tensor, texture: Tensor, uv_dx: object, uv_dy: object) -> list[Tensor]:
@@ -171,13 +230,15 @@ def _check_derivatives(filter: str, uv: Tensor, texture: Tensor, uv_dx: object, 
 
 def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy: Tensor,
                 bias: Union[float, Tensor], B: int, filter: str, max_aniso: float, tolerance: float,
-                wrap_u: str, wrap_v: str, border: float) -> Tensor:
+                wrap_u: str, wrap_v: str, border: float, u: Optional[Tensor] = None) -> Tensor:
     """The mip filters on flat point lists; one pass per texture of the batch.
 
     A plain texture's pyramid is built only as deep as its points read (the
     same values and gradients as the full chain; a view that only magnifies
     builds none): by the reading node of the bilinear-tap filters
     (``TexturePyramid``), here for EWA, which reads the full chain.
+    With ``u`` ([B * Ho * Wo, k, R] uniforms, ``filters.stochastic.uniforms``) the stochastic filter:
+    each point becomes k neighbouring points, one draw each, averaged.
     """
     base = pyramid.levels[0] if isinstance(pyramid, Mipmap) else pyramid.base if isinstance(pyramid, Ripmap) \
         else pyramid
@@ -215,6 +276,8 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
                 D = D.clamp(max=n_levels - 1)  # round(D) may lie below D
 
     def run(lv: Levels, sl: slice) -> Tensor:
+        if u is not None:
+            return _run_stochastic(lv, sl)
         if filter == "ewa":
             b = bias[sl] if isinstance(bias, Tensor) and bias.dim() == 1 else bias
             f = type(fp)(*(x[sl] for x in fp))
@@ -222,6 +285,20 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
             return ewa_points(lv, pts[sl], f, e, b, max_aniso, wrap_u, wrap_v, border)
         return trilinear_points(lv, pts[sl], D[sl], wrap_u, wrap_v, border, nearest_mip=filter == "nearest-mip",
                                 axis=None if axis is None else axis[sl], count=None if count is None else count[sl])
+
+    def _run_stochastic(lv: Levels, sl: slice) -> Tensor:
+        k = u.shape[1]
+        # k draws of a point: k neighbouring points (one draw: the points as they are).
+        rep = (lambda t: t[sl]) if k == 1 else (lambda t: t[sl].repeat_interleave(k, 0))  # noqa: E731
+        uk = u[sl].reshape(-1, u.shape[2])
+        if filter == "ewa":
+            b = rep(bias) if isinstance(bias, Tensor) and bias.dim() == 1 else bias
+            out = stochastic_ewa(lv, rep(pts), type(fp)(*map(rep, fp)), type(ell)(*map(rep, ell)), b, max_aniso,
+                                 wrap_u, wrap_v, border, uk)
+        else:
+            out = stochastic_trilinear(lv, rep(pts), rep(D), uk, wrap_u, wrap_v, border,
+                                       None if axis is None else rep(axis), None if count is None else rep(count))
+        return out if k == 1 else out.view(out.shape[0], -1, k).mean(-1)
 
     def levels_of(i: int | None) -> Levels:
         if levels is None:

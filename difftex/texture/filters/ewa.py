@@ -93,6 +93,28 @@ def _pairs(sx: Tensor, sy: Tensor, sxx: Tensor, sxy: Tensor, syy: Tensor) -> tup
     return point[row], rx, ry[row]
 
 
+def gaussian(ss: Tensor, tt: Tensor, sxx: Tensor, sxy: Tensor, syy: Tensor, det: Tensor) -> Tensor:
+    """EWA weight ``exp(-ALPHA r^2) - exp(-ALPHA)`` (0 outside) of texel offsets (ss, tt) from the sample point.
+
+    All per (point, texel) pair: ``r^2 = (syy ss^2 - 2 sxy ss tt + sxx tt^2) / det``, the padded covariance
+    ``Sigma = (sxx, sxy, syy)`` with ``det = |Sigma|``. The stochastic filter draws texels by these weights.
+    """
+    r2 = (syy * ss * ss - 2 * sxy * ss * tt + sxx * tt * tt) / det
+    return (torch.exp(-ALPHA * r2) - math.exp(-ALPHA)).clamp(min=0)
+
+
+def texels(flat: Tensor, H: int, W: int, col: Tensor, row: Tensor, wrap_u: str, wrap_v: str,
+           border: float) -> Tensor:
+    """Texels of one level ``flat`` [C, H * W] at integer-valued float columns / rows [n], wrapped: [C, n]."""
+    ix, vx = wrap_index(col, W, wrap_u)
+    iy, vy = wrap_index(row, H, wrap_v)
+    vals = flat.index_select(1, iy * W + ix)
+    valid = vx if vy is None else (vy if vx is None else vx & vy)
+    if valid is not None:
+        vals = torch.where(valid, vals, vals.new_tensor(border))
+    return vals
+
+
 def _ewa_chunk(flat: Tensor, H: int, W: int, ox: Tensor, oy: Tensor, sx: Tensor, sy: Tensor,
                sxx: Tensor, sxy: Tensor, syy: Tensor, wrap_u: str, wrap_v: str, border: float) -> Tensor:
     """EWA of one level at a chunk of points: [C + 1, m] (weighted sums, then the weight sum)."""
@@ -104,27 +126,22 @@ def _ewa_chunk(flat: Tensor, H: int, W: int, ox: Tensor, oy: Tensor, sx: Tensor,
     # backward (index_add along dim 0 of a 1-D tensor) adds them one by one in pair order (DESIGN.md,
     # "determinism").
     per_pair = lambda x: x.index_select(0, point)  # noqa: E731
-    ss = rx - per_pair(sx)
-    tt = ry - per_pair(sy)
     det = sxx * syy - sxy * sxy
-    r2 = (per_pair(syy) * ss * ss - 2 * per_pair(sxy) * ss * tt + per_pair(sxx) * tt * tt) / per_pair(det)
-    w = (torch.exp(-ALPHA * r2) - math.exp(-ALPHA)).clamp(min=0)
-    ix, vx = wrap_index(per_pair(ox) + rx, W, wrap_u)
-    iy, vy = wrap_index(per_pair(oy) + ry, H, wrap_v)
-    vals = flat.index_select(1, iy * W + ix)
-    valid = vx if vy is None else (vy if vx is None else vx & vy)
-    if valid is not None:
-        vals = torch.where(valid, vals, vals.new_tensor(border))
+    w = gaussian(rx - per_pair(sx), ry - per_pair(sy), per_pair(sxx), per_pair(sxy), per_pair(syy), per_pair(det))
+    vals = texels(flat, H, W, per_pair(ox) + rx, per_pair(oy) + ry, wrap_u, wrap_v, border)
     m = sx.shape[0]
     num = flat.new_zeros((flat.shape[0], m)).index_add(1, point, vals * w)
     den = flat.new_zeros((m,)).index_add(0, point, w)
     return torch.cat((num, den.unsqueeze(0)), 0)
 
 
-def _ewa_level(lev: Tensor, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Tensor, full_h: int, full_w: int,
-               coarsest: bool, wrap_u: str, wrap_v: str, border: float) -> Tensor:
-    """EWA on one level [1, C, Hk, Wk] at points uv [m, 2] with level-0 ellipses; [C, m]."""
-    _, C, H, W = lev.shape
+def level_ellipse(H: int, W: int, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Tensor, full_h: int,
+                  full_w: int, coarsest: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The padded ellipse of points uv [m, 2] on an H x W level, in its texels: (sxx, sxy, syy, origin, frac).
+
+    ``sigma``, ``minor``, ``scale`` as from ``covariance`` (level-0, scaled); ``origin`` [m, 2] is the
+    integer part of the texel position ``uv * (W, H) - 1/2`` (detached), ``frac`` the rest (differentiable).
+    """
     kx, ky = W / full_w, H / full_h
     # Beyond the coarsest level the ellipse is shrunk to a minor axis of
     # MAX_MINOR texels; on other levels to the level's larger side (module
@@ -145,6 +162,14 @@ def _ewa_level(lev: Tensor, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Ten
     # Integer origin + fraction keeps r^2 accurate at large uv (repeat).
     origin = torch.floor(pos.detach())
     frac = pos - origin
+    return sxx, sxy, syy, origin, frac
+
+
+def _ewa_level(lev: Tensor, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Tensor, full_h: int, full_w: int,
+               coarsest: bool, wrap_u: str, wrap_v: str, border: float) -> Tensor:
+    """EWA on one level [1, C, Hk, Wk] at points uv [m, 2] with level-0 ellipses; [C, m]."""
+    _, C, H, W = lev.shape
+    sxx, sxy, syy, origin, frac = level_ellipse(H, W, uv, sigma, minor, scale, full_h, full_w, coarsest)
     flat = lev[0].reshape(C, H * W)
     M = uv.shape[0]
     with torch.no_grad():

@@ -1,0 +1,398 @@
+"""Stochastic texture filtering: one read a draw, drawn from the filter's own weights.
+
+Pharr, Wronski, Salvi, Fajardo, "Filtering After Shading With Stochastic
+Texture Filtering" (2024): a filter ``f = sum_i w_i t_i`` is the expectation
+of ``(w_i / p_i) t_i`` with tap ``i`` drawn with probability ``p_i``, for
+any pmf p that is positive wherever ``w_i`` is not 0; it reads one tap and is
+exact in expectation, negative weights (bicubic) included: the sign and the
+normaliser ride in ``w / p``. The paper's choice, importance sampling the
+filter, is ``p = |w| / sum |w|``; here each pmf is that one mixed with the
+uniform pmf over the same taps (``DEFENSIVE`` = 1/4 of it, "defensive"
+importance sampling), for the gradients (below).
+
+Every estimator is written as ``(w(theta) / p) * t(theta)``: the draw (which
+tap) and its probability ``p`` are fixed from detached inputs, and ``w``,
+the tap's weight in the deterministic filter, is recomputed differentiably.
+The derivative with the draw held fixed is ``dw / p * t + w / p * dt``,
+whose expectation over the draw is ``sum_i dw_i t_i + w_i dt_i``: the
+deterministic filter's gradient, for every input, wherever the filter's
+weights are smooth. That includes what the weights depend on (the level
+blend's D, hence uv_dx / uv_dy / lod_bias; EWA's ellipse and sample point;
+a bilinear / bicubic texel's uv), which a plain "read the drawn tap" would
+leave with no gradient at all. With ``p = w`` alone the terms ``dw / p``
+grow as ``1 / w`` where a weight is small but its slope is not (a blend
+weight ``frac(D)`` near 0, a bilinear weight near a texel centre, an EWA
+texel on the ellipse's rim): an infinite variance in the mean (the integral
+of ``1 / f``), seen in the tests as means 26 standard errors off the exact
+gradient where a tap of probability 0.009 was never drawn. The uniform
+share bounds every ``dw / p`` by ``n / DEFENSIVE`` times dw, at the price
+of value weights ``w / p`` up to ``1 / (1 - DEFENSIVE)``.
+
+What is drawn, per filter (``u`` [M, R] uniforms in [0, 1) per point, ``ROLES``):
+
+- trilinear: the level, ``floor(D) + 1`` with probability
+  ``(3/4) frac(D) + 1/8`` where D blends two levels (``u[:, -1]``; an
+  integer D reads its one level), then one bilinear tap there. The bilinear
+  tap rather than one of its four texels: it keeps the uv gradient local
+  (the tap's own slope, no variance from a texel draw) and it is the native
+  kernel's read (``trilinear_points`` with ``nearest_mip`` on the drawn
+  integer level).
+- anisotropic: one of the N probes along the major axis, uniformly
+  (``u[:, 0]``; the weights are all 1/N, so ``w / p = 1``), then the
+  trilinear draw there.
+- ewa: the level as trilinear, then one texel of that level's ellipse
+  by the exact normalised Gaussian weights of the deterministic filter,
+  mixed (``u[:, 0]``, an inverse-CDF walk over the ellipse's texels, the
+  same enumeration as ``ewa.py``).
+- bilinear / bicubic (one level): one texel of the 2x2 / 4x4, drawn per
+  axis by ``|w_x| / sum |w_x|`` mixed (``u[:, 0]``), likewise along v
+  (``u[:, 1]``): the separable weights make the pmf a product, so two
+  independent draws draw it exactly.
+
+Not unbiased: at an exact integer level D (a set of measure zero for a
+continuous footprint) the level-blend derivative, which the deterministic
+filter takes from below (``t_k - t_(k-1)``, DESIGN.md), is 0 here (one
+level is read there). Everything else, values and first derivatives, is
+unbiased; the tests check it exactly by enumerating the draws.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple, Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from ... import _native as native
+from ..lod import Ellipse, Footprint, level
+from ..wrap import drop_periods
+from .ewa import _far_clamped, _pairs, covariance, gaussian, level_ellipse, texels
+from .gather import _axis_weights, reduce_uv
+from .separable import separable_sample
+from .trilinear import Levels, trilinear_points
+
+# The filters with a stochastic mode (``sample(..., stochastic=k)``).
+STOCHASTIC_FILTERS = ("bilinear", "bicubic", "trilinear", "anisotropic", "ewa")
+# Uniforms per draw and filter, in this order: the level's last where there is one.
+ROLES = {"trilinear": ("level",), "anisotropic": ("probe", "level"), "ewa": ("texel", "level"),
+         "bilinear": ("texel along u", "texel along v"), "bicubic": ("texel along u", "texel along v")}
+# Every draw's pmf is mixed with the uniform one over its outcomes in this proportion (``defensive``), so
+# that no outcome whose weight or weight derivative is nonzero has a tiny probability: the gradient terms
+# ``dw / p`` stay bounded (at most ``n / DEFENSIVE`` times dw) and have finite variance; with p = w alone a
+# blend weight frac(D) or a bilinear weight t near 0 gives terms of size 1 / frac, whose variance diverges
+# (the integral of 1 / f). The values' weights w / p stay below 1 / (1 - DEFENSIVE).
+DEFENSIVE = 0.25
+
+
+def uniforms(filter: str, points: int, draws: int, generator: Optional[torch.Generator],
+             device: torch.device) -> Tensor:
+    """All the random numbers of one ``sample`` call, drawn up front: [points, draws, R] float64 in [0, 1).
+
+    R = ``len(ROLES[filter])``. One ``torch.rand`` call in a fixed order (point, draw, role), so a seeded
+    generator gives the same draws whatever the thread count or the order
+    the filters later consume them in. float64: a float32 uniform has 2^24
+    steps, too coarse to draw a tap of probability 1e-8 at its rate.
+    """
+    return torch.rand((points, draws, len(ROLES[filter])), generator=generator, dtype=torch.float64,
+                      device=device)
+
+
+class LevelDraw(NamedTuple):
+    """A drawn mip level per point: ``level`` [M] (integer-valued, uv dtype) and its probability ``pdf`` [M]."""
+
+    level: Tensor
+    pdf: Tensor
+
+
+def defensive(p: Tensor, n: int | Tensor) -> Tensor:
+    """The mixture ``(1 - DEFENSIVE) p + DEFENSIVE / n`` of a pmf p over n outcomes with the uniform one."""
+    return (1 - DEFENSIVE) * p + DEFENSIVE / n
+
+
+def upper_probability(D: Tensor) -> Tensor:
+    """P(draw level ``floor(D) + 1``) [M]: ``defensive(frac(D), 2)`` where D blends two levels, else 0 (detached)."""
+    Dd = D.detach()
+    f = Dd - torch.floor(Dd)
+    return torch.where(f > 0, defensive(f, 2), 0.0)
+
+
+def draw_level(D: Tensor, u: Tensor) -> LevelDraw:
+    """Level ``floor(D) + 1`` with probability ``upper_probability(D)``, else ``floor(D)``; D [M], u [M] float64."""
+    with torch.no_grad():
+        Dd = D.detach()
+        p = upper_probability(Dd)
+        upper = u < p.to(u.dtype)
+        return LevelDraw(torch.floor(Dd) + upper.to(Dd.dtype), torch.where(upper, p, 1 - p))
+
+
+def level_weight(D: Tensor, draw: LevelDraw) -> Tensor:
+    """The drawn level's weight in the trilinear blend over its probability, ``w(D) / p``: [M].
+
+    ``w`` is ``1 - (D - k)`` for the lower level k, ``D - (k' - 1)`` for the
+    upper level k'; differentiable in D.
+    """
+    upper = draw.level > D.detach()
+    w = torch.where(upper, D - (draw.level - 1), 1 - (D - draw.level))
+    return w / draw.pdf
+
+
+def trilinear_estimate(levels: Levels, uv: Tensor, D: Tensor, draw: LevelDraw, wrap_u: str, wrap_v: str,
+                       border: float) -> Tensor:
+    """One trilinear draw per point, the draw given: ``w(D) / p * bilinear(level, uv)``: [C, M].
+
+    levels, uv [M, 2], D [M] as ``trilinear_points``. Differentiable in the
+    levels (or the texture), uv and D; deterministic given ``draw`` (the
+    function that gradcheck checks).
+    """
+    # nearest_mip on an integer level reads exactly that level's bilinear tap: the native kernel's read on the
+    # CPU, the torch path elsewhere (NaN uv handled there too).
+    if native.kernel(uv) is None:  # the torch path groups the points by level itself (mip_blend)
+        tap = trilinear_points(levels, uv, draw.level, wrap_u, wrap_v, border, nearest_mip=True)
+    else:
+        # The kernel reads the points in order; drawn at random, neighbouring points alternate between two
+        # levels, which cost 9.3 ms fwd+bwd against 5.5 ms for the same reads at the smooth round(D) (65k
+        # points, one thread). Read them grouped by level (a stable sort keeps raster order within a
+        # level; 7.8 ms with the sort and the permutations) and put them back.
+        with torch.no_grad():
+            perm = torch.sort(draw.level.to(torch.uint8 if len(levels) <= 256 else torch.int64), stable=True).indices
+            inv = torch.empty_like(perm).index_copy_(0, perm, torch.arange(perm.numel(), device=perm.device))
+        tap = trilinear_points(levels, uv.index_select(0, perm), draw.level.index_select(0, perm), wrap_u, wrap_v,
+                               border, nearest_mip=True).index_select(1, inv)
+    return tap * level_weight(D, draw)
+
+
+def stochastic_trilinear(levels: Levels, uv: Tensor, D: Tensor, u: Tensor, wrap_u: str, wrap_v: str, border: float,
+                         axis: Tensor | None = None, count: Tensor | None = None) -> Tensor:
+    """One draw of the trilinear (or, with ``axis`` / ``count``, the anisotropic) filter per point: [C, M].
+
+    Args:
+        levels, uv [M, 2], D [M], axis [M, 2], count [M]: as ``trilinear_points``.
+        u: [M, R] float64 uniforms (``uniforms``): the probe (anisotropic) first, the level last.
+
+    Returns:
+        [C, M], whose expectation over ``u`` is ``trilinear_points``'s value,
+        and whose gradient's expectation is its gradient (texture, uv, D,
+        axis; module docstring for the exception at integer D).
+    """
+    if count is not None:
+        # Probe i of count, uniformly: the anisotropic weights are all 1 / count, so w / p = 1 and no factor.
+        with torch.no_grad():
+            n = count.to(torch.float64)
+            i = torch.minimum(torch.floor(u[:, 0] * n), n - 1).to(uv.dtype)
+            offset = ((i + 0.5) / count.to(uv.dtype) - 0.5).unsqueeze(-1)
+        uv = torch.addcmul(uv, axis, offset)
+    return trilinear_estimate(levels, uv, D, draw_level(D, u[:, -1]), wrap_u, wrap_v, border)
+
+
+def levels_drawn(D: Tensor, levels: int) -> int:
+    """How many pyramid levels a trilinear draw at levels D can read: ``ceil(D) + 1``, at most ``levels``."""
+    if D.numel() == 0:
+        return 1
+    return min(int(torch.ceil(D.detach()).max().item()) + 1, levels)
+
+
+# ---------------------------------------------------------------- EWA
+
+
+class TexelDraw(NamedTuple):
+    """A drawn texel per point of one level: integer-valued ``col``, ``row`` [m], its probability ``pdf`` [m]
+    and the ellipse's weight sum ``total`` [m] (detached, uv dtype)."""
+
+    col: Tensor
+    row: Tensor
+    pdf: Tensor
+    total: Tensor
+
+
+def _segment_pick(point: Tensor, w: Tensor, m: int, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Per point, one of its pairs with probability ``w / sum w`` by inverse CDF: (pair index, pdf, sum w) [m].
+
+    point [n] sorted ascending (each point's pairs contiguous), every point
+    owning a pair of positive weight; w [n] >= 0 float64; u [m] float64.
+    """
+    n = point.numel()
+    cw = torch.cumsum(w, 0)
+    counts = torch.bincount(point, minlength=m)
+    end = torch.cumsum(counts, 0)
+    before = torch.where(end - counts > 0, cw.index_select(0, (end - counts - 1).clamp(min=0)), 0.0)
+    total = cw.index_select(0, end - 1) - before
+    # The first pair whose running sum passes the target has positive weight; rounding can push the target
+    # to the point's end, so cap at its last positive pair.
+    idx = torch.searchsorted(cw, before + u * total, right=True)
+    last = torch.full((m,), -1, dtype=torch.long, device=w.device).scatter_reduce(
+        0, point, torch.where(w > 0, torch.arange(n, device=w.device), -1), "amax")
+    idx = torch.minimum(idx, last)
+    return idx, w.index_select(0, idx) / total, total
+
+
+def draw_ewa_texel(H: int, W: int, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Tensor, full_h: int,
+                   full_w: int, coarsest: bool, u: Tensor) -> TexelDraw:
+    """One texel of each point's EWA ellipse on an H x W level, drawn by its normalised Gaussian weight."""
+    with torch.no_grad():
+        sxx, sxy, syy, origin, frac = level_ellipse(H, W, uv.detach(), sigma.detach(), minor.detach(),
+                                                    scale.detach(), full_h, full_w, coarsest)
+        point, rx, ry = _pairs(frac[:, 0], frac[:, 1], sxx, sxy, syy)
+        per_pair = lambda x: x.index_select(0, point)  # noqa: E731
+        det = sxx * syy - sxy * sxy
+        w = gaussian(rx - per_pair(frac[:, 0]), ry - per_pair(frac[:, 1]), per_pair(sxx), per_pair(sxy),
+                     per_pair(syy), per_pair(det))
+        m = uv.shape[0]
+        w = w.to(torch.float64)
+        total = w.new_zeros(m).index_add(0, point, w)
+        count = torch.bincount(point, minlength=m).to(w.dtype)
+        # The Gaussian pmf mixed with the uniform one over the ellipse's texels (DEFENSIVE): the texels at
+        # the rim have weights near 0 but slopes that are not.
+        p = defensive(w / total.index_select(0, point), count.index_select(0, point))
+        idx, pdf, _ = _segment_pick(point, p, m, u)
+        return TexelDraw(origin[:, 0] + rx.index_select(0, idx), origin[:, 1] + ry.index_select(0, idx),
+                         pdf.to(uv.dtype), total.to(uv.dtype))
+
+
+def ewa_texel_estimate(lev: Tensor, uv: Tensor, sigma: Tensor, minor: Tensor, scale: Tensor, full_h: int,
+                       full_w: int, coarsest: bool, draw: TexelDraw, wrap_u: str, wrap_v: str,
+                       border: float) -> Tensor:
+    """One EWA draw on one level [1, C, Hk, Wk], the texel given: ``(w / sum w) / p * texel``: [C, m].
+
+    Differentiable in the level, uv and the ellipse (sigma, minor, scale):
+    ``w`` and the normaliser ``sum w`` over the ellipse's texels are
+    recomputed with gradients (the set of texels is fixed by the detached
+    inputs; the Gaussian is 0 on the ellipse's edge, so the sum is
+    continuous as texels enter or leave). Deterministic given ``draw``.
+    """
+    _, C, H, W = lev.shape
+    sxx, sxy, syy, origin, frac = level_ellipse(H, W, uv, sigma, minor, scale, full_h, full_w, coarsest)
+    det = sxx * syy - sxy * sxy
+    # The drawn texel's offset from the sample point: (col - origin) - frac, as ewa's pairs (rx - sx).
+    w = gaussian(draw.col - origin[:, 0] - frac[:, 0], draw.row - origin[:, 1] - frac[:, 1], sxx, sxy, syy, det)
+    if torch.is_grad_enabled() and (frac.requires_grad or sxx.requires_grad):
+        with torch.no_grad():
+            point, rx, ry = _pairs(frac[:, 0].detach(), frac[:, 1].detach(), sxx.detach(), sxy.detach(),
+                                   syy.detach())
+        per_pair = lambda x: x.index_select(0, point)  # noqa: E731 (index_select: see ewa._ewa_chunk)
+        wall = gaussian(rx - per_pair(frac[:, 0]), ry - per_pair(frac[:, 1]), per_pair(sxx), per_pair(sxy),
+                        per_pair(syy), per_pair(det))
+        total = wall.new_zeros(uv.shape[0]).index_add(0, point, wall)
+    else:
+        total = draw.total  # no gradient through the weights: the sum the draw was made from
+    vals = texels(lev[0].reshape(C, H * W), H, W, draw.col, draw.row, wrap_u, wrap_v, border)
+    return vals * (w / total / draw.pdf)
+
+
+def stochastic_ewa(levels: Sequence[Tensor], uv: Tensor, fp: Footprint, ell: Ellipse, lod_bias: Tensor | float,
+                   max_aniso: float, wrap_u: str, wrap_v: str, border: float, u: Tensor) -> Tensor:
+    """One draw of ``ewa_points`` per point (same arguments, plus ``u`` [M, 2] float64: texel, level): [C, M].
+
+    The level as ``stochastic_trilinear``, then one texel of that level's
+    ellipse by its normalised Gaussian weight. NaN where uv is not finite.
+    """
+    H, W = levels[0].shape[-2:]
+    n = len(levels)
+    ok = torch.isfinite(uv).all(-1)
+    uv_safe = torch.where(ok.unsqueeze(-1), uv, torch.zeros_like(uv))
+    # The same period removal and far clamp as ewa_points (why: there).
+    uv_safe = torch.stack([_far_clamped(drop_periods(uv_safe[:, 0], wrap_u), wrap_u),
+                           _far_clamped(drop_periods(uv_safe[:, 1], wrap_v), wrap_v)], -1)
+    sigma, minor, log2_minor = covariance(fp, ell, max_aniso)
+    D = level(log2_minor, lod_bias, n)
+    scale = torch.exp2(fp.log2_scale)
+    ldraw = draw_level(D, u[:, -1])
+    factor = level_weight(D, ldraw)
+    out = uv.new_zeros((levels[0].shape[1], uv.shape[0]))
+    lev_id = ldraw.level.long()
+    parts, where = [], []
+    for k in torch.unique(lev_id).tolist():
+        idx = (lev_id == k).nonzero().squeeze(1)
+        pick = lambda x: x.index_select(0, idx)  # noqa: E731
+        args = (pick(uv_safe), pick(sigma), pick(minor), pick(scale), H, W, k == n - 1)
+        tdraw = draw_ewa_texel(*levels[k].shape[-2:], *args[:4], H, W, k == n - 1, pick(u[:, 0]))
+        parts.append(ewa_texel_estimate(levels[k], *args, tdraw, wrap_u, wrap_v, border))
+        where.append(idx)
+    if parts:
+        out = out.index_add(1, torch.cat(where), torch.cat(parts, 1))
+    out = out * factor
+    return torch.where(ok, out, torch.full_like(out, float("nan")))
+
+
+# ---------------------------------------------------------------- one level: bilinear, bicubic
+
+
+class SeparableDraw(NamedTuple):
+    """Per point the drawn tap offset along u and v (int64, from floor of the texel position) and ``pdf``."""
+
+    ox: Tensor
+    oy: Tensor
+    pdf: Tensor
+
+
+_FIRST = {"linear": 0, "cubic": -1}  # the offset of the kernel's first tap from floor(x)
+
+
+def _texel_position(texture: Tensor, uv: Tensor, wrap_u: str, wrap_v: str) -> tuple[Tensor, Tensor]:
+    """(floor, frac) of the texel position ``uv * (W, H) - 1/2`` of uv [B, M, 2], as ``gather`` forms it."""
+    H, W = texture.shape[-2:]
+    xy = reduce_uv(uv, wrap_u, wrap_v) * uv.new_tensor([W, H]) - 0.5
+    base = torch.floor(xy.detach())
+    return base, xy - base
+
+
+def _axis_pick(w: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+    """Per point a tap of w [..., K, M] with probability ``|w| / sum |w|`` over K; u [..., M]: (index, pdf) [..., M]."""
+    K = w.shape[-2]
+    a = w.abs().to(torch.float64)
+    a = defensive(a / a.sum(-2, keepdim=True), K)
+    cw = torch.cumsum(a, -2)
+    total = cw[..., -1:, :]
+    i = (cw <= u.unsqueeze(-2) * total).sum(-2, keepdim=True)
+    last = torch.where(a > 0, torch.arange(K, device=w.device).view(-1, 1), -1).amax(-2, keepdim=True)
+    i = torch.minimum(i, last.clamp(min=0))  # no positive weight (NaN uv): tap 0, whose NaN weight shows
+    return i.squeeze(-2), (a.gather(-2, i) / total).squeeze(-2)
+
+
+def draw_separable(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, u: Tensor) -> SeparableDraw:
+    """One texel of the 2x2 ("linear") or 4x4 ("cubic") kernel per point of uv [B, M, 2]; u [B, M, 2]."""
+    with torch.no_grad():
+        _, t = _texel_position(texture, uv.detach(), wrap_u, wrap_v)
+        wx, _ = _axis_weights(t[..., 0], kind, False)
+        wy, _ = _axis_weights(t[..., 1], kind, False)
+        ix, px = _axis_pick(wx, u[..., 0])
+        iy, py = _axis_pick(wy, u[..., 1])
+        first = _FIRST[kind]
+        return SeparableDraw(ix + first, iy + first, (px * py).to(uv.dtype))
+
+
+def separable_estimate(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float,
+                       draw: SeparableDraw) -> Tensor:
+    """One draw of the bilinear / bicubic filter, the texel given: ``w(uv) / p * texel``: [B, C, M].
+
+    texture [Bt, C, H, W], uv [B, M, 2] as ``separable_sample``.
+    Differentiable in the texture and uv (through the weight); deterministic
+    given ``draw``.
+    """
+    H, W = texture.shape[-2:]
+    base, t = _texel_position(texture, uv, wrap_u, wrap_v)
+    wx, _ = _axis_weights(t[..., 0], kind, False)
+    wy, _ = _axis_weights(t[..., 1], kind, False)
+    first = _FIRST[kind]
+    w = (wx.gather(-2, (draw.ox - first).unsqueeze(-2)).squeeze(-2)
+         * wy.gather(-2, (draw.oy - first).unsqueeze(-2)).squeeze(-2))
+    # The texel read by nearest at its centre: the one wrap rule, the native kernel on the CPU, and a texture
+    # gradient that lands on that texel only. NaN uv: NaN base, NaN centre, a NaN pixel.
+    centre = (base + torch.stack((draw.ox, draw.oy), -1).to(uv.dtype) + 0.5) / uv.new_tensor([W, H])
+    tex = separable_sample(texture, centre, "nearest", wrap_u, wrap_v, border)
+    return tex * (w / draw.pdf).unsqueeze(1)
+
+
+def stochastic_separable(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wrap_v: str, border: float,
+                         u: Tensor) -> Tensor:
+    """One draw of ``separable_sample(texture, uv, kind, ...)`` per point (kind "linear" / "cubic"): [B, C, M].
+
+    u: [B, M, 2] float64 (along u, along v). The expectation over u is the filter's value
+    and its texture and uv gradients (module docstring).
+    """
+    return separable_estimate(texture, uv, kind, wrap_u, wrap_v, border,
+                              draw_separable(texture, uv, kind, wrap_u, wrap_v, u))
+
+
+__all__ = ["STOCHASTIC_FILTERS", "ROLES", "uniforms", "LevelDraw", "draw_level", "level_weight",
+           "trilinear_estimate", "stochastic_trilinear", "levels_drawn", "TexelDraw", "draw_ewa_texel",
+           "ewa_texel_estimate", "stochastic_ewa", "SeparableDraw", "draw_separable", "separable_estimate",
+           "stochastic_separable", "DEFENSIVE", "defensive", "upper_probability"]

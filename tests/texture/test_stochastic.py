@@ -1,0 +1,419 @@
+"""Stochastic texture filtering (``sample(..., stochastic=k)``, difftex/texture/filters/stochastic.py).
+
+The central check is statistical: over G independent groups of k draws,
+each pixel's mean must sit within ``Z_BOUND`` standard errors of the
+deterministic filter's value, for the values and for the gradients (the
+texture's, uv's, uv_dx's). ``z_scores`` is that check, and a sampler with a
+wrong pdf must fail it (``test_a_biased_sampler_fails_the_check``), so the
+bound is not so loose that anything passes. Everything is seeded: the test
+is deterministic, the bound is for a fresh seed.
+"""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from difftex import mipmap, sample
+from difftex.testing.scenes import checker_noise_texture, grazing_plane
+from difftex.texture.filters import stochastic as st
+from difftex.texture.filters.ewa import covariance
+from difftex.texture.lod import ellipse, footprint
+
+# Largest |z| allowed over every pixel, channel and texel of a check. The
+# check compares a few thousand numbers; for normal means and G = 40 groups
+# (t with 39 degrees of freedom) P(|z| > 6) is about 3e-7 each.
+Z_BOUND = 6.0
+GROUPS = 40
+FLOOR = 0.25
+
+
+def z_scores(samples: torch.Tensor, exact: torch.Tensor, floor: float = FLOOR) -> float:
+    """Largest |mean - exact| / standard error over the entries; samples [G, ...] independent, exact [...].
+
+    Each entry's standard error is floored at ``floor`` times the root mean
+    square of all of them: a tap of small probability (the defensive
+    minimum, 1/256 of a bicubic draw) is missed by all G groups at many
+    entries, which then show a small spread yet lack that tap's (small)
+    share of the mean. The floor sets the check's resolution; the biased
+    samplers below miss by far more.
+    """
+    G = samples.shape[0]
+    se = samples.std(0) / math.sqrt(G)
+    se = se.clamp(min=max(floor * float(se.square().mean().sqrt()), 1e-300))
+    return float(((samples.mean(0) - exact).abs() / se).max())
+
+
+def swirl(res: int = 12, dtype=torch.float64):
+    """A minified, rotating, non-uniform uv field with its exact pixel derivatives: (uv, uv_dx, uv_dy)."""
+    r = torch.arange(res, dtype=torch.float64).view(res, 1).expand(res, res)
+    c = torch.arange(res, dtype=torch.float64).view(1, res).expand(res, res)
+    x, y = (c + 0.5) / res, (r + 0.5) / res
+    u = 0.3 + 2.5 * x + 0.4 * torch.sin(3 * y)
+    v = 0.2 + 1.7 * y * y + 0.8 * x
+    du_dc, du_dr = 2.5 / res, 1.2 * torch.cos(3 * y) / res
+    dv_dc, dv_dr = 0.8 / res, 3.4 * y / res
+    uv = torch.stack((u, v), -1)
+    dx = torch.stack((torch.full_like(u, du_dc), torch.full_like(v, dv_dc)), -1)
+    dy = torch.stack((du_dr, dv_dr), -1)
+    return tuple(t.unsqueeze(0).to(dtype) for t in (uv, dx, dy))
+
+
+def plane(res: int = 12, dtype=torch.float64):
+    return grazing_plane(res, pitch_deg=25.0, fov_deg=40.0, tile=1.5, dtype=dtype)
+
+
+TEXTURE = checker_noise_texture(32, checks=4, noise=0.5, channels=2, dtype=torch.float64)
+SCENES = {"plane": (plane, "repeat"), "swirl": (swirl, ("mirror", "clamp"))}
+
+
+def run(filter: str, scene: str, k: int, seed: int, *, texture=TEXTURE, grads: bool = True):
+    """Values and gradients of one call: (value [1, C, H, W], d/dtexture, d/duv, d/duv_dx) of a fixed loss."""
+    make, wrap = SCENES[scene]
+    uv, dx, dy = make(8 if filter == "ewa" else 12)  # EWA reads ~30 texels a draw on the torch path: fewer pixels
+    tex = texture.clone().requires_grad_(grads)
+    uv = uv.clone().requires_grad_(grads)
+    dx = dx.clone().requires_grad_(grads)
+    g = torch.Generator().manual_seed(seed)
+    out = sample(tex, uv, filter=filter, wrap=wrap, uv_dx=dx, uv_dy=dy, max_aniso=8, stochastic=k, generator=g)
+    if not grads:
+        return (out.detach(),)
+    # A fixed, sign-changing weighting of the pixels: its gradient is no plain sum.
+    w = torch.linspace(-1, 2, out.numel(), dtype=out.dtype).view_as(out)
+    gt, gu, gd = torch.autograd.grad((out * w).sum(), (tex, uv, dx), allow_unused=True)
+    return out.detach(), gt, gu, torch.zeros_like(dx) if gd is None else gd
+
+
+def groups(filter: str, scene: str, k: int, seed: int = 0, grads: bool = True):
+    """GROUPS independent estimates of k draws each, stacked per output: a list of [GROUPS, ...].
+
+    Values alone: one call over a batch of GROUPS copies of the scene (each batch entry draws its own);
+    with gradients, one call a group (each needs its own texture gradient).
+    """
+    if not grads:
+        make, wrap = SCENES[scene]
+        uv, dx, dy = (t.expand(GROUPS, -1, -1, -1) for t in make(8 if filter == "ewa" else 12))
+        out = sample(TEXTURE, uv, filter=filter, wrap=wrap, uv_dx=dx, uv_dy=dy, max_aniso=8, stochastic=k,
+                     generator=torch.Generator().manual_seed(seed))
+        return [out.unsqueeze(1)]
+    parts = [run(filter, scene, k, seed * 1000 + i) for i in range(GROUPS)]
+    return [torch.stack(p) for p in zip(*parts)]
+
+
+CASES = [("trilinear", "plane"), ("trilinear", "swirl"), ("anisotropic", "plane"), ("anisotropic", "swirl"),
+         ("ewa", "plane"), ("bicubic", "swirl"), ("bilinear", "swirl")]
+
+
+@pytest.mark.parametrize("filter,scene", CASES)
+def test_the_mean_of_the_draws_is_the_filter(filter, scene):
+    """Values and the texture, uv and uv_dx (level) gradients, z-checked on two scenes."""
+    exact = run(filter, scene, 0, 0)
+    names = ("value", "texture grad", "uv grad", "uv_dx grad")
+    many = groups(filter, scene, 4)
+    for name, s, e in zip(names, many, exact):
+        if name == "uv_dx grad" and filter in ("bilinear", "bicubic"):
+            assert e.abs().max() == 0 and s.abs().max() == 0  # single-level: no footprint
+            continue
+        z = z_scores(s, e)
+        print(f"{filter} {scene} {name}: max |z| {z:.2f}")
+        assert z < Z_BOUND, f"{filter} on {scene}: {name} off by {z:.2f} standard errors"
+    # And the estimate is not trivially the filter: the draws do differ.
+    assert many[0].std(0).max() > 1e-3
+
+
+def _biased_draw_level(D, u):
+    """A wrong level pdf: the upper level drawn with probability frac^2, reported as frac."""
+    with torch.no_grad():
+        k0 = torch.floor(D.detach())
+        f = D.detach() - k0
+        upper = u < (f * f).to(u.dtype)
+        return st.LevelDraw(k0 + upper.to(D.dtype), torch.where(upper, f, 1 - f))
+
+
+def test_a_biased_sampler_fails_the_check(monkeypatch):
+    exact = run("trilinear", "plane", 0, 0, grads=False)[0]
+    good = groups("trilinear", "plane", 4, grads=False)[0]
+    monkeypatch.setattr(st, "draw_level", _biased_draw_level)
+    bad = groups("trilinear", "plane", 4, grads=False)[0]
+    print("z of the right sampler", z_scores(good, exact), "of the biased one", z_scores(bad, exact))
+    assert z_scores(good, exact) < Z_BOUND
+    assert z_scores(bad, exact) > Z_BOUND
+
+
+def test_one_texel_too_many_fails_the_check(monkeypatch):
+    """EWA whose texel draw skips to the next texel of the ellipse: a wrong tap, the same pdf."""
+    exact = run("ewa", "plane", 0, 0, grads=False)[0]
+    real = st.draw_ewa_texel
+
+    def shifted(*args):
+        d = real(*args)
+        return st.TexelDraw(d.col + 1, d.row, d.pdf, d.total)
+
+    monkeypatch.setattr(st, "draw_ewa_texel", shifted)
+    bad = groups("ewa", "plane", 4, grads=False)[0]
+    print("z of the shifted EWA", z_scores(bad, exact))
+    assert z_scores(bad, exact) > Z_BOUND
+
+
+@pytest.mark.parametrize("filter", ["trilinear", "ewa", "bicubic"])
+def test_variance_falls_as_one_over_k(filter):
+    scene = "swirl" if filter == "bicubic" else "plane"
+    var = {k: groups(filter, scene, k, seed=k, grads=False)[0].var(0).mean().item() for k in (1, 4)}
+    ratio = var[1] / var[4]
+    print(f"{filter}: variance k=1 / k=4 = {ratio:.2f}")
+    # 4 expected; the ratio of two means of 128-288 per-pixel variances of 40 groups is good to about 10 %.
+    assert 3.0 < ratio < 5.3, f"{filter}: variance ratio k=1 / k=4 is {ratio:.2f}, expected 4"
+
+
+def test_seeded_draws_repeat_bit_for_bit():
+    a = run("anisotropic", "swirl", 3, 7)
+    b = run("anisotropic", "swirl", 3, 7)
+    c = run("anisotropic", "swirl", 3, 8)
+    for x, y in zip(a, b):
+        assert torch.equal(x, y)
+    assert not torch.equal(a[0], c[0])
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = run("ewa", "plane", 2, 3, grads=False)[0]
+        torch.set_num_threads(2)
+        two = run("ewa", "plane", 2, 3, grads=False)[0]
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one, two)
+
+
+def test_the_default_generator_is_used_and_seeded():
+    uv, dx, dy = swirl()
+    torch.manual_seed(5)
+    a = sample(TEXTURE, uv, filter="trilinear", uv_dx=dx, uv_dy=dy, stochastic=True)
+    torch.manual_seed(5)
+    b = sample(TEXTURE, uv, filter="trilinear", uv_dx=dx, uv_dy=dy, stochastic=1)
+    assert torch.equal(a, b)
+
+
+def test_a_magnified_trilinear_draw_is_the_filter():
+    """Level 0 only (D clamped at 0): one level, probability 1; the draw is its bilinear tap, exactly."""
+    uv, dx, dy = swirl()
+    d = torch.full_like(uv, 0.1 / 32)
+    det = sample(TEXTURE, uv, filter="trilinear", uv_dx=d, uv_dy=d)
+    sto = sample(TEXTURE, uv, filter="trilinear", uv_dx=d, uv_dy=d, stochastic=1, generator=torch.Generator())
+    assert torch.equal(sto, det)
+
+
+# ---------------------------------------------------------------- gradients given the draws
+
+
+def test_trilinear_estimate_gradcheck():
+    tex = TEXTURE[:, :1, :16, :16].clone().requires_grad_()
+    g = torch.Generator().manual_seed(1)
+    M = 6
+    uv = (torch.rand(M, 2, generator=g, dtype=torch.float64) * 0.8 + 0.1).requires_grad_()
+    D = (torch.rand(M, generator=g, dtype=torch.float64) * 3.4 + 0.05).requires_grad_()
+    draw = st.draw_level(D, torch.linspace(0.01, 0.99, M, dtype=torch.float64))
+    assert 0 < int((draw.level > D).sum()) < M  # both kinds of draw
+    fn = lambda uv, D, tex: st.trilinear_estimate(mipmap(tex).levels, uv, D, draw, "repeat", "clamp",  # noqa
+                                                 0.0)
+    assert torch.autograd.gradcheck(fn, (uv, D, tex))
+
+
+def test_ewa_texel_estimate_gradcheck():
+    lev = TEXTURE[:, :1, :16, :16].clone().requires_grad_()
+    g = torch.Generator().manual_seed(2)
+    M = 3
+    uv = (torch.rand(M, 2, generator=g, dtype=torch.float64) * 0.8 + 0.1)
+    dx = torch.randn(M, 2, generator=g, dtype=torch.float64) * 0.08
+    dy = torch.randn(M, 2, generator=g, dtype=torch.float64) * 0.05
+    fp = footprint(dx, dy, 16, 16)
+    sigma, minor, _ = covariance(fp, ellipse(fp), 8.0)
+    scale = torch.exp2(fp.log2_scale)
+    args = [uv.requires_grad_(), sigma.requires_grad_(), minor.requires_grad_(), scale.requires_grad_()]
+    draw = st.draw_ewa_texel(16, 16, *args, 16, 16, False, torch.rand(M, generator=g, dtype=torch.float64))
+    fn = lambda lev, uv, sigma, minor, scale: st.ewa_texel_estimate(  # noqa: E731
+        lev, uv, sigma, minor, scale, 16, 16, False, draw, "repeat", "mirror", 0.0)
+    assert torch.autograd.gradcheck(fn, (lev, *args))
+
+
+@pytest.mark.parametrize("kind", ["linear", "cubic"])
+def test_separable_estimate_gradcheck(kind):
+    tex = TEXTURE[:, :, :8, :8].clone().requires_grad_()
+    g = torch.Generator().manual_seed(3)
+    uv = (torch.rand(1, 7, 2, generator=g, dtype=torch.float64) * 1.6 - 0.3).requires_grad_()
+    draw = st.draw_separable(tex, uv, kind, "repeat", "border", torch.rand(1, 7, 2, generator=g,
+                                                                            dtype=torch.float64))
+    fn = lambda tex, uv: st.separable_estimate(tex, uv, kind, "repeat", "border", 0.25, draw)  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (tex, uv))
+
+
+# ---------------------------------------------------------------- exact expectations: every draw enumerated
+
+
+def _points(M: int = 5, seed: int = 4):
+    """M points in (0.1, 0.9)^2 with footprints of 0.3 .. 6 texels of a 32^2 texture, float64, needing grads."""
+    g = torch.Generator().manual_seed(seed)
+    uv = torch.rand(M, 2, generator=g, dtype=torch.float64) * 0.8 + 0.1
+    dx = torch.randn(M, 2, generator=g, dtype=torch.float64) * torch.logspace(-1.5, -0.7, M, dtype=torch.float64)[:, None]
+    dy = torch.randn(M, 2, generator=g, dtype=torch.float64) * 0.03
+    return uv.requires_grad_(), dx.requires_grad_(), dy
+
+
+def _value_and_grads(out, inputs):
+    w = torch.linspace(-1, 2, out.numel(), dtype=out.dtype).view_as(out)
+    return [out.detach(), *torch.autograd.grad((out * w).sum(), inputs, retain_graph=True)]
+
+
+def _level_choices(D):
+    """Both level draws of every point, forced: [(LevelDraw, probability)], probability 0 where impossible."""
+    k0 = torch.floor(D.detach())
+    p = st.upper_probability(D)
+    return [(st.LevelDraw(k0, 1 - p), 1 - p), (st.LevelDraw(k0 + 1, torch.where(p > 0, p, 1.0)), p)]
+
+
+def test_trilinear_expectation_is_exact():
+    """Sum over both level draws of p * estimate = the filter: value and texture, uv, D (footprint) gradients."""
+    from difftex.texture.filters.trilinear import trilinear_points
+    from difftex.texture.lod import level, log2_length
+    tex = TEXTURE.clone().requires_grad_()
+    uv, dx, dy = _points()
+    D = level(log2_length(dx, dy, 32, 32), 0.0, 6)
+    assert ((D > 0.5) & (D % 1 > 0.05)).sum() >= 3  # a real blend at most points
+    levels = mipmap(tex).levels
+    exact = _value_and_grads(trilinear_points(levels, uv, D, "repeat", "mirror", 0.0), (tex, uv, dx))
+    est = sum(p * st.trilinear_estimate(levels, uv, D, d, "repeat", "mirror", 0.0) for d, p in _level_choices(D))
+    for a, b in zip(_value_and_grads(est, (tex, uv, dx)), exact):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_ewa_expectation_is_exact():
+    """Sum over both levels and every texel of the ellipse of p * estimate = EWA: value and every gradient."""
+    from difftex.texture.filters.ewa import _pairs, ewa_points, gaussian, level_ellipse
+    from difftex.texture.lod import level
+    tex = TEXTURE.clone().requires_grad_()
+    uv, dx, dy = _points()
+    fp = footprint(dx, dy, 32, 32)
+    ell = ellipse(fp)
+    levels = mipmap(tex).levels
+    n = len(levels)
+    exact = _value_and_grads(ewa_points(levels, uv, fp, ell, 0.0, 8.0, "repeat", "repeat", 0.0), (tex, uv, dx))
+    sigma, minor, log2_minor = covariance(fp, ell, 8.0)
+    D = level(log2_minor, 0.0, n)
+    scale = torch.exp2(fp.log2_scale)
+    est = 0
+    for ldraw, p_level in _level_choices(D):
+        per_point = []
+        for m in range(uv.shape[0]):  # one point at a time: each may sit on another level
+            k = min(int(ldraw.level[m]), n - 1)
+            sl = slice(m, m + 1)
+            args = (uv[sl], sigma[sl], minor[sl], scale[sl], 32, 32, k == n - 1)
+            with torch.no_grad():
+                sxx, sxy, syy, origin, frac = level_ellipse(*levels[k].shape[-2:], *args)
+                _, rx, ry = _pairs(frac[:, 0], frac[:, 1], sxx, sxy, syy)
+                w = gaussian(rx - frac[:, 0], ry - frac[:, 1], sxx, sxy, syy, sxx * syy - sxy * sxy)
+            T = rx.numel()
+            pdf = st.defensive(w / w.sum(), T)
+            draw = st.TexelDraw(origin[0, 0] + rx, origin[0, 1] + ry, pdf, w.sum().expand(T))
+            many = [x.expand(T, *x.shape[1:]) for x in args[:4]]
+            e = st.ewa_texel_estimate(levels[k], *many, *args[4:], draw, "repeat", "repeat", 0.0)
+            per_point.append((e * draw.pdf).sum(1))
+        est = est + p_level * st.level_weight(D, ldraw) * torch.stack(per_point, 1)
+    for a, b in zip(_value_and_grads(est, (tex, uv, dx)), exact):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11)
+
+
+@pytest.mark.parametrize("kind", ["linear", "cubic"])
+def test_separable_expectation_is_exact(kind):
+    """Sum over the 4 / 16 texels of p * estimate = bilinear / bicubic (negative weights included)."""
+    from difftex.texture.filters.separable import separable_sample
+    tex = TEXTURE.clone().requires_grad_()
+    uv = (_points()[0].detach() * 1.4 - 0.2).unsqueeze(0).requires_grad_()
+    exact = _value_and_grads(separable_sample(tex, uv, kind, "border", "clamp", 0.5), (tex, uv))
+    K = 2 if kind == "linear" else 4
+    first = 0 if kind == "linear" else -1
+    with torch.no_grad():
+        _, t = st._texel_position(tex, uv, "border", "clamp")
+        wx = st._axis_weights(t[..., 0], kind, False)[0]
+        wy = st._axis_weights(t[..., 1], kind, False)[0]
+        px = st.defensive(wx.abs() / wx.abs().sum(-2, keepdim=True), K)
+        py = st.defensive(wy.abs() / wy.abs().sum(-2, keepdim=True), K)
+    est = 0
+    for i in range(K):
+        for j in range(K):
+            p = px[:, i] * py[:, j]
+            ox = torch.full_like(p, i + first, dtype=torch.long)
+            draw = st.SeparableDraw(ox, torch.full_like(ox, j + first), p)
+            est = est + p.unsqueeze(1) * st.separable_estimate(tex, uv, kind, "border", "clamp", 0.5, draw)
+    for a, b in zip(_value_and_grads(est, (tex, uv)), exact):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+# ---------------------------------------------------------------- edges, inputs
+
+
+def test_nan_texels_stay_in_their_pixels_and_finite_input_gives_finite_output():
+    tex = TEXTURE.clone()
+    tex[0, :, 5, 7] = float("nan")
+    for f, scene in CASES:
+        make, wrap = SCENES[scene]
+        uv, dx, dy = make()
+        det = sample(tex, uv, filter=f, wrap=wrap, uv_dx=dx, uv_dy=dy, max_aniso=8)
+        sto = sample(tex, uv, filter=f, wrap=wrap, uv_dx=dx, uv_dy=dy, max_aniso=8, stochastic=4,
+                     generator=torch.Generator().manual_seed(0))
+        assert torch.isfinite(sto[torch.isfinite(det)]).all(), f
+        assert torch.isfinite(sample(TEXTURE, uv, filter=f, wrap=wrap, uv_dx=dx, uv_dy=dy, stochastic=2)).all()
+
+
+def test_nan_uv_gives_a_nan_pixel_only():
+    uv, dx, dy = swirl()
+    uv = uv.clone()
+    uv[0, 3, 4] = float("nan")
+    for f in ("trilinear", "anisotropic", "ewa", "bicubic"):
+        out = sample(TEXTURE, uv, filter=f, uv_dx=dx, uv_dy=dy, stochastic=2)
+        bad = ~torch.isfinite(out)
+        assert bad[:, :, 3, 4].all() and int(bad.sum()) == out.shape[1], f
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_batches_and_dtypes(dtype):
+    tex = torch.cat([TEXTURE, 1 - TEXTURE]).to(dtype)
+    uv, dx, dy = (t.to(dtype).expand(2, -1, -1, -1) for t in swirl())
+    for f, k in (("trilinear", 256), ("ewa", 64), ("bicubic", 256)):
+        det = sample(tex, uv, filter=f, uv_dx=dx, uv_dy=dy)
+        sto = sample(tex, uv, filter=f, uv_dx=dx, uv_dy=dy, stochastic=k,
+                     generator=torch.Generator().manual_seed(1))
+        assert sto.dtype == dtype and sto.shape == det.shape
+        # A draw's standard deviation is under 1.2 on this [0, 1] texture (bicubic's weights over their
+        # probabilities reach 1.9; EWA's and trilinear's under 0.4), so k draws are within 0.3 everywhere
+        # (seeded; the z checks above are sharper). A texture of another batch entry would be off by ~0.7.
+        assert (sto - det).abs().max() < 0.3, f
+        # Each texture of the batch is its own: the second is 1 - the first.
+        torch.testing.assert_close(det[0] + det[1], torch.ones_like(det[0]), atol=1e-5, rtol=0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_runs_the_torch_path():
+    uv, dx, dy = (t.cuda() for t in swirl())
+    tex = TEXTURE.cuda()
+    g = torch.Generator(device="cuda").manual_seed(0)
+    for f in st.STOCHASTIC_FILTERS:
+        det = sample(tex, uv, filter=f, uv_dx=dx, uv_dy=dy)
+        sto = sample(tex, uv, filter=f, uv_dx=dx, uv_dy=dy, stochastic=512, generator=g)
+        assert (sto - det).abs().max() < 0.3, f
+
+
+def test_bad_input_names_the_argument():
+    uv, dx, dy = swirl()
+    kw = dict(filter="trilinear", uv_dx=dx, uv_dy=dy)
+    with pytest.raises(ValueError, match="stochastic"):
+        sample(TEXTURE, uv, **kw, stochastic=-1)
+    with pytest.raises(TypeError, match="stochastic"):
+        sample(TEXTURE, uv, **kw, stochastic=1.5)
+    with pytest.raises(ValueError, match="stochastic"):
+        sample(TEXTURE, uv, filter="sat", uv_dx=dx, uv_dy=dy, stochastic=1)
+    with pytest.raises(TypeError, match="generator"):
+        sample(TEXTURE, uv, **kw, stochastic=1, generator=3)
+    # Off: no draws, the deterministic filter bit for bit, the generator untouched.
+    g = torch.Generator().manual_seed(0)
+    state = g.get_state()
+    assert torch.equal(sample(TEXTURE, uv, **kw, stochastic=0, generator=g), sample(TEXTURE, uv, **kw))
+    assert torch.equal(g.get_state(), state)
