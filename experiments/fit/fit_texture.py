@@ -51,8 +51,9 @@ from experiments.fit import frame_cache, runtime
 from experiments.fit.runtime import Dist, StepSampler
 
 FILTERS = ("bilinear", "trilinear", "anisotropic", "ewa", "auto")
-# --capture's default memory budget for frames held in memory (MiB, per process): the demo's 48 views at 128^2
-# take 17 MiB; 512 holds e.g. 400 frames at 256^2 (images 16 B a pixel, fragments 44 B a covered pixel).
+# --capture's default budget for the frames held in memory (MiB, per process): the demo's 48 views at 128^2 take
+# 18 MiB; 512 holds e.g. 250 frames at 256^2 where the object covers a quarter of each (images and masks 16 B a
+# pixel, fragments 44 B a covered pixel), about what a 1024^2 fit itself peaks at.
 CACHE_MB = 512.0
 
 
