@@ -12,8 +12,9 @@ on both, one fresh process each of:
 
 Every run has the same iterations, batch, seed and a texture of the demo's size (spot's 1024^2). Wall is the
 whole process (start-up, setup, fit, evaluation, writing the outputs), measured here; the fit loop alone is the
-run's ``fit_seconds``. Prints each run, then per mode the median and range (min..max) and the ratio to the demo
-of the same repeat.
+run's ``fit_seconds``; CPU is the process's user + system time (``getrusage``), which another load on a shared
+machine moves less than the wall time. Prints each run, then per mode the median and range (min..max) and the
+ratio to the demo of the same repeat.
 
     python -m experiments.bench.bench_capture [--repeats 3] [--iters 300] [--uncached]
 """
@@ -22,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -35,15 +37,18 @@ TEXTURE = ROOT / "data" / "spot" / "spot_texture.png"
 
 
 def _run(args: list[str], out: Path) -> dict:
-    """One fit in a fresh process; its metrics plus the measured wall time."""
+    """One fit in a fresh process; its metrics plus the measured wall and CPU time."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
     r = subprocess.run([sys.executable, "-m", "experiments.fit.fit_texture", *args, "--no-progress", "--out", str(out)],
                        cwd=ROOT, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
     if r.returncode:
         raise RuntimeError(f"fit_texture {' '.join(args)} failed:\n{r.stderr[-3000:]}")
-    return dict(json.loads((out / "metrics.json").read_text()), wall=wall)
+    return dict(json.loads((out / "metrics.json").read_text()), wall=wall, cpu=cpu)
 
 
 def _spread(xs: list[float]) -> str:
@@ -79,27 +84,27 @@ def main(argv: list[str] | None = None) -> None:
         if args.uncached:
             modes["uncached"] = capture + ["--cache-mb", "0"]
         runs: dict[str, list[dict]] = {m: [] for m in modes}
-        print(f"| repeat | mode | wall (s) | fit loop (s) | texture PSNR (dB) | cached | cache MiB |\n"
-              f"|---|---|---|---|---|---|---|", flush=True)
+        print(f"| repeat | mode | wall (s) | CPU (s) | fit loop (s) | texture PSNR (dB) | cached | cache MiB |\n"
+              f"|---|---|---|---|---|---|---|---|", flush=True)
         for rep in range(args.repeats):
             order = list(modes) if rep % 2 == 0 else list(modes)[::-1]
             for mode in order:
                 m = _run(modes[mode], tmp / f"{mode}{rep}")
                 runs[mode].append(m)
-                print(f"| {rep} | {mode} | {m['wall']:.2f} | {m['fit_seconds']:.2f} | {m['texture_psnr']:.3f} | "
+                print(f"| {rep} | {mode} | {m['wall']:.2f} | {m['cpu']:.2f} | {m['fit_seconds']:.2f} | "
+                      f"{m['texture_psnr']:.3f} | "
                       f"{m.get('cached', '-')} | {m.get('cache_bytes', 0) / 2 ** 20:.1f} |", flush=True)
     print(f"\n{args.repeats} repeats, median (min..max); ratio = mode / demo of the same repeat\n"
-          f"| mode | wall (s) | fit loop (s) | wall ratio | fit-loop ratio | texture PSNR (dB) | PSNR - demo (dB) |\n"
-          f"|---|---|---|---|---|---|---|")
+          f"| mode | wall (s) | wall ratio | CPU (s) | CPU ratio | fit loop (s) | fit-loop ratio | texture PSNR (dB) "
+          f"| PSNR - demo (dB) |\n|---|---|---|---|---|---|---|---|---|")
     demo = runs["demo"]
     for mode, rs in runs.items():
-        wall = [r["wall"] for r in rs]
-        fit = [r["fit_seconds"] for r in rs]
-        ratio = [r["wall"] / q["wall"] for r, q in zip(rs, demo)]
-        fit_ratio = [r["fit_seconds"] / q["fit_seconds"] for r, q in zip(rs, demo)]
+        cols = []
+        for key in ("wall", "cpu", "fit_seconds"):
+            cols += [_spread([r[key] for r in rs]), _spread([r[key] / q[key] for r, q in zip(rs, demo)])]
         dpsnr = [r["texture_psnr"] - q["texture_psnr"] for r, q in zip(rs, demo)]
-        print(f"| {mode} | {_spread(wall)} | {_spread(fit)} | {_spread(ratio)} | {_spread(fit_ratio)} | "
-              f"{statistics.median(r['texture_psnr'] for r in rs):.3f} | {max(dpsnr, key=abs):+.3f} |")
+        print(f"| {mode} | {' | '.join(cols)} | {statistics.median(r['texture_psnr'] for r in rs):.3f} | "
+              f"{max(dpsnr, key=abs):+.3f} |")
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@ loaded once.
 A fit of the texture (or uv) renders the same fragments for a frame at every step, since only the texture and uv
 change and neither moves a triangle on the screen. When the fragments of every frame and the images fit a budget,
 :func:`rasterize_frames` keeps the fragments of its one pass over the frames (the pass that finds the frames that
-see the mesh) and :meth:`FrameCache.load_images` reads each image once; each step then gathers its views from
+see the mesh) and :meth:`FrameCache.load` reads each image once; each step then gathers its views from
 memory, as the in-memory demo does, with no DataLoader and no worker processes. Otherwise the fit rasterizes each
 step's views and streams the images (experiments/fit/fit_texture.py).
 

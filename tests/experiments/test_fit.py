@@ -96,6 +96,20 @@ def test_cached_capture_fit_equals_per_step_fit(small_capture, per_step_fit, tmp
     assert 0 < covered // frame_cache.compact_bytes() < 6 * 32 * 32
 
 
+def test_capture_fit_matches_the_demo(small_fits, tmp_path):
+    """The demo's views written as a capture and fitted back (cached, the default) reach the demo's texture PSNR."""
+    from difftex.testing.meshes import SPOT_TEXTURE
+
+    demo = small_fits["trilinear"]
+    fit_texture.make_capture(tmp_path, res=SMALL["res"], views=SMALL["views"], seed=0)
+    m = fit_texture.fit_capture(tmp_path, MESH, iters=SMALL["iters"], batch=SMALL["batch"], tex_size=1024,
+                                reference_texture=SPOT_TEXTURE, progress=False, save=False)
+    print(m["texture_psnr"], demo["texture_psnr"], m["cache_bytes"])
+    assert m["cached"] and m["workers"] == 0
+    # The photographs are 8-bit and the cameras pass through transforms.json in float64: not bit-equal targets.
+    assert abs(m["texture_psnr"] - demo["texture_psnr"]) < 0.05
+
+
 @pytest.mark.parametrize("resume_cache_mb", [fit_texture.CACHE_MB, 0])
 def test_cached_capture_fit_resumes_to_the_same_texture(small_capture, per_step_fit, tmp_path, monkeypatch,
                                                         resume_cache_mb):
