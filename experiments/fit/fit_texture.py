@@ -16,10 +16,12 @@ texture PSNR).
 
 Captures on disk (difftex.io.capture, the transforms.json convention of Blender / instant-ngp / nerfstudio):
 ``--make-capture DIR`` writes the bundled spot views (the demo's training views, with the coverage as alpha)
-as one; ``--capture DIR --mesh MESH [--tex-size 1024]`` fits a texture to a capture, loading its images lazily
-through a DataLoader (``--workers``) and rendering each step's views (rasterized per step, so a capture need not
-fit in memory). Frames whose camera sees nothing of the mesh are skipped with a warning; other bad frames raise
-unless ``--skip-bad``.
+as one; ``--capture DIR --mesh MESH [--tex-size 1024]`` fits a texture to a capture. The mesh does not move, so
+when every frame's fragments and image fit ``--cache-mb`` (experiments/fit/frame_cache.py) each frame is
+rasterized and loaded once and the steps gather from memory, as the demo does; otherwise (``--cache-mb 0``, or a
+capture too big) the images stream through a DataLoader (``--workers``) and each step's views are rasterized
+anew, so a capture need not fit in memory. Both give the same batches, so the same texture. Frames whose camera
+sees nothing of the mesh are skipped with a warning; other bad frames raise unless ``--skip-bad``.
 
 Scale (experiments/fit/runtime.py): ``torchrun --nproc-per-node N -m experiments.fit.fit_texture ...`` splits each
 step's global batch over N processes (gloo on the CPU, nccl on CUDA) and averages the gradients with an all-reduce;
@@ -33,6 +35,7 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import Iterator
 
 import warnings
 
@@ -44,10 +47,14 @@ from difftex import Fragments, camera
 from difftex.metrics import psnr
 from difftex.io.capture import CaptureDataset, CaptureWarning, load_capture, save_capture, visible_frames
 from difftex.testing import spot_mesh, spot_texture
-from experiments.fit import runtime
+from experiments.fit import frame_cache, runtime
 from experiments.fit.runtime import Dist, StepSampler
 
 FILTERS = ("bilinear", "trilinear", "anisotropic", "ewa", "auto")
+# --capture's default budget for the frames held in memory (MiB, per process): the demo's 48 views at 128^2 take
+# 18 MiB; 512 holds e.g. 250 frames at 256^2 where the object covers a quarter of each (images and masks 16 B a
+# pixel, fragments 44 B a covered pixel), about what a 1024^2 fit itself peaks at.
+CACHE_MB = 512.0
 
 
 def random_cameras(n: int, seed: int, dist_range=(2.0, 16.0), fov_deg: float = 40.0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -260,15 +267,25 @@ def fit_capture(capture: str | Path, mesh: str | Path, filter: str = "trilinear"
                 batch: int = 8, lr: float = 0.03, seed: int = 0, out: str | Path = "results/fit_capture",
                 tex_size: int = 1024, workers: int = 2, skip_bad: bool = False,
                 reference_texture: str | Path | None = None, progress: bool = True, save: bool = True, *,
-                checkpoint_every: int = 0, resume: bool = False, device: str = "cpu") -> dict:
-    """Fit a ``tex_size``^2 RGB texture of ``mesh`` to a transforms.json capture (images loaded lazily).
+                cache_mb: float = CACHE_MB, checkpoint_every: int = 0, resume: bool = False,
+                device: str = "cpu") -> dict:
+    """Fit a ``tex_size``^2 RGB texture of ``mesh`` to a transforms.json capture.
 
     The loss weights each pixel by the image's alpha (the object mask; 1 without one). Frames whose camera
     sees nothing of the mesh are skipped with a CaptureWarning (they would add no gradient, and a camera
     pointing away is common in a real capture); ValueError if no frame sees it (usually a wrong axis
     convention or scale). With ``reference_texture`` (same size), metrics include the texture PSNR over
-    the texels the frames see (as the demo counts them). Returns the metrics (rank 0; {} on the other ranks).
+    the texels the frames see (as the demo counts them).
+
+    ``cache_mb`` (MiB, per process) bounds the frames held in memory: when every frame's fragments and
+    image fit it, each frame is rasterized and read once and no DataLoader worker starts; otherwise (0
+    turns the cache off) ``workers`` processes stream the images and each step rasterizes its views. The
+    two give bit-identical batches, so the same texture; ``cache_mb`` is not part of the settings that
+    ``resume`` checks. Returns the metrics (rank 0; {} on the other ranks). Raises ValueError naming
+    ``cache_mb`` when it is not a number >= 0.
     """
+    if isinstance(cache_mb, bool) or not isinstance(cache_mb, (int, float)) or not 0 <= cache_mb < math.inf:
+        raise ValueError(f"cache_mb: expected a finite number of MiB >= 0 (0: no cache), got {cache_mb!r}")
     d = runtime.setup(device)
     dev = d.device
     torch.manual_seed(seed)
@@ -280,13 +297,20 @@ def fit_capture(capture: str | Path, mesh: str | Path, filter: str = "trilinear"
     if dev.type == "cpu":
         difftex._native.load()
 
-    # Each process rasterizes its share of the frames once; the counts are summed over processes.
     mvp_all = cap.mvp().to(dev)
-    counts = torch.zeros(len(cap), dtype=torch.int64, device=dev)
-    mine = torch.arange(d.rank, len(cap), d.world, device=dev)
-    counts[mine] = visible_frames(mvp_all[mine], model.positions, model.faces, (H, W))
-    if d.world > 1:
-        torch.distributed.all_reduce(counts)
+    budget = int(cache_mb * 2 ** 20) - frame_cache.image_bytes(len(cap), (H, W))
+    compact = None
+    if budget > 0:
+        # Every process rasterizes every frame (a step's share may be any frame) and keeps the fragments while
+        # they fit; the budget and the frames are the same everywhere, so every process decides alike.
+        counts, compact = frame_cache.rasterize_frames(model, mvp_all, (H, W), budget_bytes=budget)
+    else:
+        # Each process rasterizes its share of the frames once; the counts are summed over processes.
+        counts = torch.zeros(len(cap), dtype=torch.int64, device=dev)
+        mine = torch.arange(d.rank, len(cap), d.world, device=dev)
+        counts[mine] = visible_frames(mvp_all[mine], model.positions, model.faces, (H, W))
+        if d.world > 1:
+            torch.distributed.all_reduce(counts)
     keep = [k for k in range(len(cap)) if counts[k] > 0]
     if not keep:
         raise ValueError(f"capture {str(capture)!r}: no frame's camera sees the mesh {str(mesh)!r}; check the "
@@ -298,14 +322,24 @@ def fit_capture(capture: str | Path, mesh: str | Path, filter: str = "trilinear"
                               "skipped (it would add no gradient)", CaptureWarning, stacklevel=2)
     ds = CaptureDataset(cap, frames=keep)
     sampler = StepSampler(len(ds), batch, seed + 1, iters, d)
-    loader = torch.utils.data.DataLoader(ds, batch_sampler=sampler, num_workers=workers,
-                                         pin_memory=dev.type == "cuda")
+    cache = frame_cache.FrameCache.load(compact.subset(keep), ds, dev) if compact is not None else None
+    del compact
+
+    def views(order) -> Iterator[tuple[Fragments, torch.Tensor, torch.Tensor]]:
+        """(fragments, images, masks) of each list of frames ``order`` yields (a batch sampler)."""
+        if cache is not None:
+            yield from map(cache.batch, order)
+            return
+        loader = torch.utils.data.DataLoader(ds, batch_sampler=order, num_workers=workers,
+                                             pin_memory=dev.type == "cuda")
+        for b in loader:
+            yield (model.rasterize(b["mvp"].to(dev, non_blocking=True), (H, W)),
+                   b["image"].to(dev, non_blocking=True), b["mask"].to(dev, non_blocking=True))
 
     def batches():
-        for b in loader:
-            frags = model.rasterize(b["mvp"].to(dev, non_blocking=True), (H, W))
+        for frags, image, mask in views(sampler):
             img, _ = model(frags=frags)
-            yield img, b["image"].to(dev, non_blocking=True), b["mask"].to(dev, non_blocking=True)
+            yield img, image, mask
 
     score = None
     if reference_texture is not None and d.main:
@@ -327,12 +361,10 @@ def fit_capture(capture: str | Path, mesh: str | Path, filter: str = "trilinear"
 
     # Pooled over every pixel of every frame, weighted by alpha (one pass, any capture size).
     sse, count, shown = 0.0, 0.0, []
-    eval_loader = torch.utils.data.DataLoader(ds, batch_size=batch, num_workers=workers,
-                                              pin_memory=dev.type == "cuda")
+    in_order = [list(range(i, min(i + batch, len(ds)))) for i in range(0, len(ds), batch)]
     with torch.no_grad():
-        for b in eval_loader:
-            img, _ = model(frags=model.rasterize(b["mvp"].to(dev), (H, W)))
-            t, m = b["image"].to(dev), b["mask"].to(dev)
+        for frags, t, m in views(in_order):
+            img, _ = model(frags=frags)
             sse += float((m * (img - t) ** 2).sum(dtype=torch.float64))
             count += float(m.sum(dtype=torch.float64)) * img.shape[1]
             if len(shown) < 4:
@@ -345,7 +377,9 @@ def fit_capture(capture: str | Path, mesh: str | Path, filter: str = "trilinear"
         "seconds": time.perf_counter() - t0, "fit_seconds": run["fit_seconds"],
         "steps_per_second": run["steps"] / run["fit_seconds"] if run["steps"] else float("nan"),
         "processes": d.world, "allreduce_bytes_per_step": run["allreduce_bytes"],
-        "peak_rss_bytes": peak_rss_bytes(), "batch": batch, "lr": lr, "seed": seed, "workers": workers,
+        "peak_rss_bytes": peak_rss_bytes(), "batch": batch, "lr": lr, "seed": seed,
+        "workers": 0 if cache is not None else workers,
+        "cached": cache is not None, "cache_bytes": cache.nbytes if cache is not None else 0,
     }
     if save:
         out = Path(out)
@@ -403,7 +437,11 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--capture", metavar="DIR", help="fit to this transforms.json capture (needs --mesh)")
     p.add_argument("--mesh", help="the captured object's mesh (OBJ / GLB / glTF / PLY with uv)")
     p.add_argument("--tex-size", type=int, default=1024, help="--capture: fitted texture is N x N RGB")
-    p.add_argument("--workers", type=int, default=2, help="--capture: DataLoader worker processes")
+    p.add_argument("--workers", type=int, default=2,
+                   help="--capture: DataLoader worker processes (none start when the frames are cached)")
+    p.add_argument("--cache-mb", type=float, default=CACHE_MB, metavar="MIB",
+                   help="--capture: hold every frame's fragments and image in memory when they fit this many MiB "
+                        "(per process; 0: rasterize and load each step's views anew)")
     p.add_argument("--skip-bad", action="store_true", help="--capture: skip bad frames with a warning")
     p.add_argument("--reference-texture", help="--capture: score the fit against this texture")
     p.add_argument("--checkpoint-every", type=int, default=0, metavar="K")
@@ -423,8 +461,8 @@ def main(argv: list[str] | None = None) -> None:
             out = args.out or "results/fit_capture"
             m = fit_capture(args.capture, args.mesh, args.filter, args.iters, args.batch, args.lr, args.seed, out,
                             args.tex_size, args.workers, args.skip_bad, args.reference_texture,
-                            not args.no_progress, checkpoint_every=args.checkpoint_every, resume=args.resume,
-                            device=args.device)
+                            not args.no_progress, cache_mb=args.cache_mb, checkpoint_every=args.checkpoint_every,
+                            resume=args.resume, device=args.device)
             written = "metrics.json, views.png, texture.png, curves.png"
         else:
             out = args.out or "results/fit_texture"
