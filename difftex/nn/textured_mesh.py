@@ -34,6 +34,22 @@ class TexturedMesh(nn.Module):
         learn_texture: register the texture as an ``nn.Parameter``.
         learn_uv: register the uv [T, 2] as an ``nn.Parameter`` too.
         background: value of pixels that no triangle covers (a finite number).
+        stochastic: 0 (default) reads the texture with the deterministic
+            filter; k >= 1 with stochastic texture filtering, k draws a
+            pixel (:func:`difftex.sample`'s ``stochastic``), from the
+            module's own generator (``seed``; its state is part of the
+            ``state_dict``, so a resumed fit draws what an uninterrupted
+            one would).
+        decorrelate: with ``stochastic`` and gradients enabled, the image's
+            value comes from one set of draws and its gradient from an
+            independent one (``a.detach() + b - b.detach()``): the gradient of an
+            L2 loss is then ``2 (a - y) db/dθ``, whose expectation is the
+            gradient of ``(E a - y)^2``. With one set (False), the
+            expectation of the loss is ``(E a - y)^2 + Var a``, and the
+            variance term pulls every texel towards its footprint's mean (a
+            blur the deterministic filter does not have). Twice the reads;
+            without gradients (evaluation) one set is read either way.
+        seed: seeds the draws' generator.
 
     Raises TypeError naming the argument for a texture that is not float32 /
     float64 or a background that is not a number, ValueError for shapes.
@@ -44,7 +60,8 @@ class TexturedMesh(nn.Module):
 
     def __init__(self, mesh: Mesh, texture: Tensor, *, filter: str = "trilinear", wrap: Wrap = "clamp",
                  max_aniso: float = 16, lod_bias: float = 0.0, learn_texture: bool = True,
-                 learn_uv: bool = False, background: float = 0.0) -> None:
+                 learn_uv: bool = False, background: float = 0.0, stochastic: int = 0,
+                 decorrelate: bool = True, seed: int = 0) -> None:
         super().__init__()
         if not isinstance(mesh, Mesh):
             raise TypeError(f"mesh: expected a difftex.Mesh, got {type(mesh).__name__}")
@@ -69,6 +86,25 @@ class TexturedMesh(nn.Module):
         self.max_aniso = max_aniso
         self.lod_bias = lod_bias
         self.background = background
+        if isinstance(stochastic, bool) or not isinstance(stochastic, int) or stochastic < 0:
+            raise ValueError(f"stochastic: expected an int >= 0 (draws a pixel), got {stochastic!r}")
+        self.stochastic = stochastic
+        self.decorrelate = bool(decorrelate)
+        self.generator = torch.Generator(device=texture.device).manual_seed(int(seed))
+
+    def get_extra_state(self) -> dict:
+        # The draws' generator travels with the parameters: a checkpoint resumes the same draws.
+        return {"generator": self.generator.get_state()}
+
+    def set_extra_state(self, state: dict) -> None:
+        self.generator.set_state(state["generator"])
+
+    def _apply(self, fn, recurse: bool = True):
+        out = super()._apply(fn, recurse)
+        # .to(device) moves the tensors; the generator follows (its draws restart from its seed there).
+        if self.texture.device != self.generator.device:
+            self.generator = torch.Generator(device=self.texture.device).manual_seed(self.generator.initial_seed())
+        return out
 
     def _register(self, name: str, value: Tensor, learn: bool) -> None:
         if learn:
@@ -133,7 +169,14 @@ class TexturedMesh(nn.Module):
                 image = image + t.reshape(-1)[:0].sum()  # 0, in the graph
             return image, mask.to(image.dtype)
         uv, uv_dx, uv_dy = interpolate(uv, self.faces, frags, derivatives=True, attr_faces=self.uv_faces)
-        image = sample(self.texture, uv, filter=self.filter, wrap=self.wrap,
-                       uv_dx=uv_dx, uv_dy=uv_dy, max_aniso=self.max_aniso, lod_bias=self.lod_bias)
+        kw = dict(filter=self.filter, wrap=self.wrap, uv_dx=uv_dx, uv_dy=uv_dy, max_aniso=self.max_aniso,
+                  lod_bias=self.lod_bias)
+        if self.stochastic:
+            kw.update(stochastic=self.stochastic, generator=self.generator)
+        image = sample(self.texture, uv, **kw)
+        if self.stochastic and self.decorrelate and torch.is_grad_enabled() and image.requires_grad:
+            slope = sample(self.texture, uv, **kw)
+            # Exactly the first draws' value (x - x is 0), the second draws' gradient.
+            image = image.detach() + (slope - slope.detach())
         image = torch.where(mask, image, image.new_tensor(self.background))
         return image, mask.to(image.dtype)

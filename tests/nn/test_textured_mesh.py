@@ -143,3 +143,33 @@ def test_resolution_that_cannot_fit_names_resolution(spot):
     model = difftex.TexturedMesh(spot, torch.rand(3, 8, 8))
     with pytest.raises(ValueError, match=r"resolution 30000x30000 with batch 2 needs at least 93\.9 GiB"):
         model(_mvp(2), (30000, 30000))
+
+
+def test_stochastic_draws_travel_with_the_state_dict(spot):
+    tex = torch.rand(1, 3, 32, 32)
+    a = difftex.TexturedMesh(spot, tex, filter="anisotropic", stochastic=1, seed=3)
+    a(_mvp(), (24, 24))[0].sum().backward()  # advances a's generator
+    b = difftex.TexturedMesh(spot, tex, filter="anisotropic", stochastic=1, seed=99)
+    b.load_state_dict(a.state_dict())
+    with torch.no_grad():
+        x, y = a(_mvp(), (24, 24))[0], b(_mvp(), (24, 24))[0]
+    assert torch.equal(x, y)
+    # A fresh module of the same seed draws otherwise than one that has drawn before.
+    fresh = difftex.TexturedMesh(spot, tex, filter="anisotropic", stochastic=1, seed=3)
+    with torch.no_grad():
+        assert not torch.equal(fresh(_mvp(), (24, 24))[0], x)
+
+
+def test_decorrelated_stochastic_value_is_the_first_draw_and_gradient_another(spot):
+    tex = torch.rand(1, 3, 32, 32)
+    kw = dict(filter="trilinear", stochastic=1, seed=5)
+    one = difftex.TexturedMesh(spot, tex, decorrelate=False, **kw)
+    two = difftex.TexturedMesh(spot, tex, decorrelate=True, **kw)
+    img1, img2 = one(_mvp(), (24, 24))[0], two(_mvp(), (24, 24))[0]
+    assert torch.equal(img1, img2)  # the value: the same first draws
+    img1.sum().backward()
+    img2.sum().backward()
+    g1, g2 = one.texture.grad, two.texture.grad
+    assert g2.abs().sum() > 0 and not torch.equal(g1, g2)  # the gradient: a second, independent set of draws
+    with pytest.raises(ValueError, match="stochastic: expected an int >= 0"):
+        difftex.TexturedMesh(spot, tex, stochastic=-1)
