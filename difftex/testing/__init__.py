@@ -8,7 +8,8 @@ unless a docstring says otherwise. Modules:
 * :mod:`.references`: the supersampled reference and the checker's closed form;
 * :mod:`.suite`: the 17-scene suite of the speed-vs-accuracy study;
 * :mod:`.peers`: grid_sample and kornia lookups with difftex's uv and wrap;
-* :mod:`.timing`: functions timed interleaved, with a pause between calls.
+* :mod:`.timing`: functions timed interleaved, with a pause between calls, or in
+  blocks of back-to-back calls (steady state).
 
 The one PSNR is :func:`difftex.metrics.psnr`.
 """
@@ -18,7 +19,7 @@ from .references import checker_footprint_mean, checker_pixel_box_mean, supersam
 from .scenes import checker_noise_texture, checker_texture, grazing_plane, mirror_sphere, reflection_dirs
 from .suite import (CHECKER, PITCHES, SPHERE_MINIFICATION, SPOT_VIEWS, Scene, build_scenes, plane_fov, plane_scene,
                     sphere_mvp, sphere_scene, sphere_uv, spot_mvp, spot_scene)
-from .timing import Timing, time_interleaved
+from .timing import Timing, time_blocks, time_interleaved
 
 __all__ = [
     "DATA_DIR", "SPOT_MESH", "SPOT_TEXTURE", "icosphere", "spot_mesh", "spot_texture",
@@ -27,5 +28,5 @@ __all__ = [
     "checker_noise_texture", "checker_texture", "grazing_plane", "mirror_sphere", "reflection_dirs",
     "CHECKER", "PITCHES", "SPHERE_MINIFICATION", "SPOT_VIEWS", "Scene", "build_scenes", "plane_fov", "plane_scene",
     "sphere_mvp", "sphere_scene", "sphere_uv", "spot_mvp", "spot_scene",
-    "Timing", "time_interleaved",
+    "Timing", "time_blocks", "time_interleaved",
 ]

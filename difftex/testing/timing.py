@@ -121,3 +121,56 @@ def time_interleaved(fns: Sequence[Callable[[], object]], repeats: int = 9, *, w
             if r >= warmup:
                 times[i].append((time.perf_counter() - t) * 1e3)
     return [Timing(tuple(ts)) for ts in times]
+
+
+def time_blocks(fns: Sequence[Callable[[], object]], blocks: int = 8, *, calls: int = 8, skip: int = 2,
+                pause: float = 0.03, shuffle: bool = True, seed: int = 0,
+                device: Optional[torch.device | str] = None) -> list[Timing]:
+    """Steady-state times: blocks of ``calls`` back-to-back calls of one function, interleaved block by block.
+
+    The protocol of the speed issues for calls of a few ms on a 2-core
+    machine: each block sleeps ``pause`` (the previous library's spinning
+    worker threads settle), calls one function ``calls`` times in a row and
+    keeps the times of all but the first ``skip`` (its own threads awake,
+    its caches warm: a render or training loop's time). Every round runs
+    one block of every function, in a new order when ``shuffle``. The first
+    call after the pause is what :func:`time_interleaved` times; report it
+    apart.
+
+    Args:
+        fns: callables without arguments (what they return is dropped).
+        blocks: rounds (>= 1); each function gets ``blocks * (calls - skip)`` times.
+        calls: calls per block (> ``skip``).
+        skip: untimed leading calls of every block (>= 0).
+        pause, shuffle, seed, device: as for :func:`time_interleaved`; one
+            untimed warm-up round of single calls comes first.
+
+    Returns:
+        One :class:`Timing` per function, its times in call order; ``ratio_to``
+        pairs the k-th timed call of one function with the k-th of another.
+
+    Raises:
+        ValueError: no functions, ``blocks`` < 1, ``skip`` < 0, ``calls`` <= ``skip`` or ``pause`` < 0.
+    """
+    if not fns or blocks < 1 or skip < 0 or calls <= skip or pause < 0:
+        raise ValueError(f"time_blocks: expected functions, blocks >= 1, skip >= 0, calls > skip and pause >= 0, "
+                         f"got {len(fns)} functions, blocks={blocks}, calls={calls}, skip={skip}, pause={pause}")
+    rng = random.Random(seed)
+    order = list(range(len(fns)))
+    for fn in fns:
+        fn()
+    times: list[list[float]] = [[] for _ in fns]
+    for _ in range(blocks):
+        if shuffle:
+            rng.shuffle(order)
+        for i in order:
+            if pause:
+                time.sleep(pause)
+            for c in range(calls):
+                _synchronize(device)
+                t = time.perf_counter()
+                fns[i]()
+                _synchronize(device)
+                if c >= skip:
+                    times[i].append((time.perf_counter() - t) * 1e3)
+    return [Timing(tuple(ts)) for ts in times]

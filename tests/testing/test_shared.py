@@ -8,7 +8,7 @@ import torch
 
 import difftex
 from difftex.testing import (Timing, checker_noise_texture, grazing_plane, grid_sample_lookup, icosphere,
-                             kornia_lookup, supersampled, time_interleaved)
+                             kornia_lookup, supersampled, time_blocks, time_interleaved)
 
 
 @pytest.mark.parametrize("n", [0, 2])
@@ -86,3 +86,20 @@ def test_shuffled_rounds_call_every_function_once_a_round():
     rounds = [sorted(calls[i:i + 4]) for i in range(0, 12, 4)]
     assert rounds == [[0, 1, 2, 3]] * 3
     assert len({tuple(calls[i:i + 4]) for i in range(0, 12, 4)}) > 1  # seed 0 gives different orders
+
+
+def test_time_blocks_times_all_but_the_first_calls_of_each_block_of_back_to_back_calls():
+    calls = []
+
+    def a():  # the first two calls of every block (after the warm-up call) are the slow ones
+        calls.append("a")
+        n = calls.count("a") - 1
+        time.sleep(0.004 if n >= 1 and (n - 1) % 4 < 2 else 0)
+    fns = [a, lambda: calls.append("b")]
+    ta, tb = time_blocks(fns, blocks=3, calls=4, skip=2, pause=0.0, shuffle=False)
+    assert calls == ["a", "b"] + (["a"] * 4 + ["b"] * 4) * 3  # warm-up, then a block of each per round
+    assert len(ta.times_ms) == len(tb.times_ms) == 6
+    assert max(ta.times_ms) < 4.0  # the slow (skipped) calls are not timed
+    for bad in (dict(blocks=0), dict(skip=-1), dict(calls=2, skip=2), dict(pause=-1.0)):
+        with pytest.raises(ValueError, match="time_blocks: expected functions, blocks >= 1"):
+            time_blocks(fns, **bad)
