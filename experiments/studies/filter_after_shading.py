@@ -71,10 +71,58 @@ def bump_normal_map(size: int = 512, seed: int = 0) -> torch.Tensor:
     return ((n + 1) / 2).float()[None]
 
 
-def shade(encoded: torch.Tensor, light: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
-    """[B, 1, H, W] Blinn-Phong radiance of encoded tangent-space normals [B, 3, H, W] (frame = identity)."""
-    n = F.normalize(2 * encoded.movedim(1, -1) - 1, dim=-1, eps=1e-12)
+def height_field(size: int = 512, seed: int = 0) -> torch.Tensor:
+    """[size, size] float64 random band-limited height field (24-96 cycles across), in texels, slopes ~0.35."""
+    g = torch.Generator().manual_seed(seed)
+    f = torch.fft.fftfreq(size, d=1.0 / size)
+    fy, fx = torch.meshgrid(f, f, indexing="ij")
+    r = torch.sqrt(fx ** 2 + fy ** 2)
+    band = ((r >= 24) & (r <= 96)).double()
+    spec = torch.complex(torch.randn(size, size, generator=g, dtype=torch.float64),
+                         torch.randn(size, size, generator=g, dtype=torch.float64)) * band
+    h = torch.fft.ifft2(spec).real
+    # Slopes of about 0.35 (20 degrees): bumps a tight lobe resolves, normals a filter flattens.
+    return h / h.std() * 0.35 / (2 * math.pi * 60 / size)
+
+
+def bump_normal_map(size: int = 512, seed: int = 0) -> torch.Tensor:
+    """[1, 3, size, size] tangent-space normal map (encoded in [0, 1]) of ``height_field``: its central
+    differences."""
+    h = height_field(size, seed)
+    hx = (torch.roll(h, -1, 1) - torch.roll(h, 1, 1)) / 2
+    hy = (torch.roll(h, -1, 0) - torch.roll(h, 1, 0)) / 2
+    n = torch.stack([-hx, -hy, torch.ones_like(h)], 0)
+    n = n / n.norm(dim=0, keepdim=True)
+    return ((n + 1) / 2).float()[None]
+
+
+def bump_height_map(size: int = 512, seed: int = 0) -> torch.Tensor:
+    """[1, 1, size, size] the same height field in uv units (a texel is 1 / size), for ``difftex.bump``."""
+    return (height_field(size, seed) / size).float()[None, None]
+
+
+def blinn(n: torch.Tensor, light: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+    """[B, 1, H, W] Blinn-Phong radiance of unit tangent-space normals [B, H, W, 3] (frame = identity)."""
     return difftex.blinn_phong(n, view, light, kd=0.2, ks=1.0, shininess=400.0).movedim(-1, 1)
+
+
+def normal_map_normals(tex, uv: torch.Tensor, **kw) -> torch.Tensor:
+    """Unit normals [B, H, W, 3] of an encoded normal map read by ``difftex.sample(tex, uv, **kw)``."""
+    return F.normalize(2 * difftex.sample(tex, uv, **kw).movedim(1, -1) - 1, dim=-1, eps=1e-12)
+
+
+def bump_normals(tex, uv: torch.Tensor, **kw) -> torch.Tensor:
+    """Unit normals [B, H, W, 3] of a height map (uv units) by bump mapping: ``normalize(-dh/du, -dh/dv, 1)`` with
+    the slope of the read ``difftex.sample(tex, uv, **kw)`` (for a stochastic read, the slope of the drawn
+    estimate: unbiased for the filter's slope, docs/stochastic.md)."""
+    with torch.enable_grad():
+        pts = uv.detach().requires_grad_(True)
+        h = difftex.sample(tex, pts, **kw)
+        (slope,) = torch.autograd.grad(h, pts, torch.ones_like(h))
+    return F.normalize(torch.cat([-slope, torch.ones_like(slope[..., :1])], -1), dim=-1)
+
+
+MAPS = {"normal": (bump_normal_map, normal_map_normals), "bump": (bump_height_map, bump_normals)}
 
 
 def frontal_plane(res: int, texels_per_pixel: float, size: int, ss: int = 1):
@@ -90,12 +138,13 @@ def frontal_plane(res: int, texels_per_pixel: float, size: int, ss: int = 1):
     return uv, dx, dy
 
 
-def reference(nm: torch.Tensor, uv_ss: torch.Tensor, ss: int, light, view, chunk_rows: int = 8) -> torch.Tensor:
+def reference(normals, tex: torch.Tensor, uv_ss: torch.Tensor, ss: int, light, view,
+              chunk_rows: int = 8) -> torch.Tensor:
     """Box average over ss x ss sub-pixel samples of the shaded bilinear level-0 normal: shading, then filtering."""
     rows = []
     with torch.no_grad():
         for chunk in torch.split(uv_ss, chunk_rows * ss, dim=1):
-            rows.append(F.avg_pool2d(shade(difftex.sample(nm, chunk, filter="bilinear"), light, view), ss))
+            rows.append(F.avg_pool2d(blinn(normals(tex, chunk, filter="bilinear"), light, view), ss))
     return torch.cat(rows, 2)
 
 
@@ -106,26 +155,24 @@ def footprint_draws(uv: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor, g: tor
     return uv + ab[..., :1] * dx + ab[..., 1:] * dy
 
 
-def methods(mip, uv, dx, dy, light, view):
-    """{name: (callable giving the [1, 1, H, W] image, draws)}."""
+def methods(normals, mip, uv, dx, dy, light, view):
+    """{name: (callable giving the [1, 1, H, W] image, draws)}; ``normals`` reads unit normals (``MAPS``)."""
     kw = dict(uv_dx=dx, uv_dy=dy, max_aniso=16)
     out = {}
     for f in ("trilinear", "anisotropic", "ewa"):
-        out[f"before: {f}"] = ((lambda f=f: shade(difftex.sample(mip, uv, filter=f, **kw), light, view)), 0)
+        out[f"before: {f}"] = ((lambda f=f: blinn(normals(mip, uv, filter=f, **kw), light, view)), 0)
 
     def average(k: int, draw) -> torch.Tensor:
         g = torch.Generator().manual_seed(k)
-        return sum(shade(draw(g), light, view) for _ in range(k)) / k
+        return sum(blinn(draw(g), light, view) for _ in range(k)) / k
 
     for f in ("anisotropic", "ewa"):
         for k in FILTER_DRAWS:
             out[f"after: stochastic {f} x{k}"] = (
-                lambda f=f, k=k: average(k, lambda g: difftex.sample(mip, uv, filter=f, stochastic=1, generator=g,
-                                                                    **kw)), k)
+                lambda f=f, k=k: average(k, lambda g: normals(mip, uv, filter=f, stochastic=1, generator=g, **kw)), k)
     for k in DRAWS:
         out[f"after: level-0 footprint x{k}"] = (
-            lambda k=k: average(k, lambda g: difftex.sample(mip[0], footprint_draws(uv, dx, dy, g),
-                                                            filter="bilinear")), k)
+            lambda k=k: average(k, lambda g: normals(mip[0], footprint_draws(uv, dx, dy, g), filter="bilinear")), k)
     return out
 
 
@@ -138,13 +185,16 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--res", type=int, default=128)
     ap.add_argument("--ss", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--map", default="normal", choices=list(MAPS),
+                    help="normal: an encoded normal map; bump: the same bumps as a height map (difftex.bump's way)")
     ap.add_argument("--out", default="results/filter_after_shading/filter_after_shading.png",
                     help="figure (docs/images/filter_after_shading.png is the README's); the chart beside it")
     args = ap.parse_args(argv)
     torch.manual_seed(0)
-    nm = bump_normal_map()
-    mip = difftex.mipmap(nm)
-    size = nm.shape[-1]
+    make, normals = MAPS[args.map]
+    tex = make()
+    mip = difftex.mipmap(tex)
+    size = tex.shape[-1]
     h = F.normalize(torch.tensor([math.sin(math.radians(4)), 0.0, math.cos(math.radians(4))]), dim=0)
     view = torch.tensor([0.0, 0.0, 1.0])
     light = F.normalize(2 * torch.dot(h, view) * h - view, dim=0)  # the mirror of view about h
@@ -155,8 +205,8 @@ def main(argv: list[str] | None = None) -> None:
 
     rows, images = [], {}
     for name, ((uv, dx, dy), uv_ss) in scenes.items():
-        ref = reference(mip[0], uv_ss, args.ss, light, view)
-        ms = methods(mip, uv, dx, dy, light, view)
+        ref = reference(normals, mip[0], uv_ss, args.ss, light, view)
+        ms = methods(normals, mip, uv, dx, dy, light, view)
         with torch.no_grad():
             times = time_interleaved([fn for fn, _ in ms.values()], repeats=args.repeats, warmup=1)
             for (m, (fn, k)), t in zip(ms.items(), times):
