@@ -188,10 +188,12 @@ def train(model: difftex.TexturedMesh, batches, sampler: StepSampler, config: di
 def fit(filter: str = "trilinear", iters: int = 300, res: int = 128, views: int = 48, batch: int = 8,
         lr: float = 0.03, seed: int = 0, out: str | Path = "results/fit_texture", target_filter: str = "ewa",
         eval_views: int = 16, progress: bool = True, save: bool = True, *, checkpoint_every: int = 0,
-        resume: bool = False, device: str = "cpu") -> dict:
+        resume: bool = False, device: str = "cpu", stochastic: int = 0, decorrelate: bool = True) -> dict:
     """Run one fit of the demo (spot's views rendered in memory) and return its metrics (also written to
     ``out``/metrics.json when ``save``; under torchrun only rank 0 writes and returns them, the others
-    return {})."""
+    return {}). ``stochastic`` / ``decorrelate``: the fitted model's stochastic filtering
+    (:class:`difftex.TexturedMesh`; 0: the deterministic filter); the targets and the scores stay
+    deterministic."""
     d = runtime.setup(device)
     dev = d.device
     torch.manual_seed(seed)
@@ -212,9 +214,11 @@ def fit(filter: str = "trilinear", iters: int = 300, res: int = 128, views: int 
         eval_targets = render_all(target_model, eval_frags, batch)
 
     init = torch.full_like(true_tex, 0.5)
-    model = difftex.TexturedMesh(mesh, init, filter=filter).to(dev)
+    model = difftex.TexturedMesh(mesh, init, filter=filter, stochastic=stochastic, decorrelate=decorrelate,
+                                 seed=seed).to(dev)
     config = {"mode": "demo", "filter": filter, "iters": iters, "res": res, "views": views, "batch": batch,
-              "lr": lr, "seed": seed, "target_filter": target_filter}
+              "lr": lr, "seed": seed, "target_filter": target_filter, "stochastic": stochastic,
+              "decorrelate": decorrelate}
     sampler = StepSampler(views, batch, seed + 1, iters, d)
 
     def batches():
@@ -228,9 +232,12 @@ def fit(filter: str = "trilinear", iters: int = 300, res: int = 128, views: int 
                 resume=resume, score=score, progress=progress, desc=f"fit {filter}")
     if not d.main:
         return {}
+    model.stochastic = 0  # scored with the deterministic filter, as the targets were rendered
     fits = render_all(model, frags, batch)
     metrics = {
         "filter": filter,
+        "stochastic": stochastic,
+        "decorrelate": decorrelate,
         "iters": iters,
         "texture_psnr": psnr(model.texture.detach(), true_tex, mask=seen),
         "initial_texture_psnr": psnr(init, true_tex, mask=seen),
@@ -431,6 +438,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--lr", type=float, default=0.03)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--target-filter", default="ewa")
+    p.add_argument("--stochastic", type=int, default=0, metavar="K",
+                   help="demo: fit through stochastic filtering, K draws a pixel (0: deterministic)")
+    p.add_argument("--no-decorrelate", action="store_true",
+                   help="--stochastic: the gradient from the value's own draws (adds the variance term)")
     p.add_argument("--eval-views", type=int, default=16, help="demo: held-out views")
     p.add_argument("--out", default=None, help="default results/fit_texture (results/fit_capture with --capture)")
     p.add_argument("--make-capture", metavar="DIR", help="write the demo's spot views as a transforms.json capture")
@@ -458,6 +469,8 @@ def main(argv: list[str] | None = None) -> None:
         if args.capture:
             if not args.mesh:
                 p.error("--capture needs --mesh")
+            if args.stochastic or args.no_decorrelate:
+                p.error("--stochastic / --no-decorrelate: the demo's fit only, not --capture")
             out = args.out or "results/fit_capture"
             m = fit_capture(args.capture, args.mesh, args.filter, args.iters, args.batch, args.lr, args.seed, out,
                             args.tex_size, args.workers, args.skip_bad, args.reference_texture,
@@ -468,7 +481,8 @@ def main(argv: list[str] | None = None) -> None:
             out = args.out or "results/fit_texture"
             m = fit(args.filter, args.iters, args.res, args.views, args.batch, args.lr, args.seed, out,
                     args.target_filter, args.eval_views, progress=not args.no_progress, checkpoint_every=args.checkpoint_every,
-                    resume=args.resume, device=args.device)
+                    resume=args.resume, device=args.device, stochastic=args.stochastic,
+                    decorrelate=not args.no_decorrelate)
             written = "metrics.json, views.png, texture.png, curves.png"
         if m:
             print(json.dumps(m, indent=2))
