@@ -928,6 +928,7 @@ def depth_peel(
     layers: int,
     *,
     cull_backfaces: bool = False,
+    derivatives: bool = True,
 ) -> list[Fragments]:
     """Depth peeling: the first ``layers`` surfaces along every pixel's ray, nearest first.
 
@@ -942,7 +943,9 @@ def depth_peel(
     the kernel.
 
     Args:
-        pos, faces, resolution, cull_backfaces: as for :func:`rasterize`.
+        pos, faces, resolution, cull_backfaces, derivatives: as for
+            :func:`rasterize` (``derivatives=False``: every layer's bary_dx
+            and bary_dy are None and not computed).
         layers: number of layers (>= 1).
 
     Returns:
@@ -957,19 +960,26 @@ def depth_peel(
         raise TypeError(f"depth_peel: layers must be an int, got {type(layers).__name__}")
     if layers < 1:
         raise ValueError(f"depth_peel: layers must be >= 1, got {layers}")
-    return list(itertools.islice(
-        visible_layers(pos, faces, resolution, cull_backfaces, fragments_of, at_once=layers), layers))
+    if not isinstance(derivatives, bool):
+        raise TypeError(f"depth_peel: derivatives must be a bool, got {type(derivatives).__name__}")
+    return list(itertools.islice(visible_layers(pos, faces, resolution, cull_backfaces, functools.partial(
+        fragments_of, derivatives=derivatives), at_once=layers), layers))
 
 
-def peel(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cull_backfaces: bool = False) -> Iterator[Fragments]:
+def peel(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cull_backfaces: bool = False,
+         derivatives: bool = True) -> Iterator[Fragments]:
     """Depth layers one at a time, nearest first, without end: :func:`depth_peel` as a lazy iterator.
 
     Each ``next()`` costs about one rasterization (the previous layer's
     float64 depth and id per pixel are kept as the floor); past the last
     surface every layer is background. Arguments, gradients and errors as
-    :func:`depth_peel` (the errors are raised at the first ``next()``).
+    :func:`depth_peel` (the errors are raised at the first ``next()``, but a
+    ``derivatives`` that is not a bool at once).
     """
-    return visible_layers(pos, faces, resolution, cull_backfaces, fragments_of)
+    if not isinstance(derivatives, bool):
+        raise TypeError(f"peel: derivatives must be a bool, got {type(derivatives).__name__}")
+    return visible_layers(pos, faces, resolution, cull_backfaces, functools.partial(
+        fragments_of, derivatives=derivatives))
 
 
 def visible_layers(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_backfaces: bool,

@@ -510,3 +510,26 @@ def test_eight_triangle_filter_matches_scalar_path(dtype, cull):
     ids, count = got[True][0], got[True][4]
     assert (ids[0] >= 0).sum() > H * W // 3 and (count >= 2).sum() > H * W // 4  # the spheres cover much, in layers
     assert ((ids >= 0) & (ids < 20480)).sum() > H * W // 3  # the dense sphere (sub-pixel triangles) shows
+
+
+@pytest.mark.parametrize("impl", IMPLS)
+def test_depth_peel_and_peel_without_derivatives(impl):
+    # derivatives=False leaves every layer's bary_dx / bary_dy None and changes nothing else, gradients included.
+    pos, faces = _quads([0.3, -0.2, 0.6, 0.3])
+    p1, p2, p3 = (pos.clone().requires_grad_(True) for _ in range(3))
+    with use_backend(impl):
+        full = depth_peel(p1, faces, (8, 16), 3)
+        lean = depth_peel(p2, faces, (8, 16), 3, derivatives=False)
+        lazy = list(itertools.islice(difftex.geometry.peel(p3, faces, (8, 16), derivatives=False), 3))
+    for f, a, b in zip(full, lean, lazy):
+        assert a.bary_dx is None and a.bary_dy is None and b.bary_dx is None and b.bary_dy is None
+        for name in ("tri_id", "bary", "depth"):
+            assert torch.equal(getattr(a, name), getattr(f, name)) and torch.equal(getattr(b, name), getattr(f, name))
+    for p, layers in ((p1, full), (p2, lean), (p3, lazy)):
+        sum(fr.bary.square().sum() + fr.depth.sum() for fr in layers).backward()
+    torch.testing.assert_close(p2.grad, p1.grad, rtol=0, atol=1e-15)
+    torch.testing.assert_close(p3.grad, p1.grad, rtol=0, atol=1e-15)
+    with pytest.raises(TypeError, match="depth_peel: derivatives must be a bool"):
+        depth_peel(pos, faces, (4, 4), 2, derivatives=1)
+    with pytest.raises(TypeError, match="peel: derivatives must be a bool"):
+        difftex.geometry.peel(pos, faces, (4, 4), derivatives=None)
