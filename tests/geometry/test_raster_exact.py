@@ -533,3 +533,40 @@ def test_depth_peel_and_peel_without_derivatives(impl):
         depth_peel(pos, faces, (4, 4), 2, derivatives=1)
     with pytest.raises(TypeError, match="peel: derivatives must be a bool"):
         difftex.geometry.peel(pos, faces, (4, 4), derivatives=None)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("cull", [False, True])
+def test_four_pixel_row_loop_matches_scalar_path(dtype, cull):
+    # The z-buffer's AVX2 row loop (raster.cpp exact_row_avx2): the same ids and float64 depths as the scalar
+    # loop and the torch path, on big triangles (spans solved per row), small ones (boxes tested per centre),
+    # odd widths (masked lanes past the last column) and coplanar overlaps (ties go to the lowest id).
+    from difftex.geometry.raster import _subpixel_bits, _visibility
+    from difftex import _native as native
+
+    kernel = native.load()
+    if kernel is None:
+        pytest.skip("the native kernel is unavailable")
+    gen = torch.Generator().manual_seed(5)
+    V, F = icosphere(3, dtype=torch.float64)
+    sphere = camera.transform(V, _camera(gen, 2.2, 50.0))
+    quads, qf = _quads([0.3, -0.2, 0.6, 0.3], torch.float64)
+    pos = torch.cat((sphere, quads)).to(dtype)
+    faces = torch.cat((F, qf + V.shape[0]))
+    for H, W in ((37, 53), (16, 16), (9, 130)):
+        got = []
+        for simd in (True, False):
+            before = kernel.set_simd(simd)
+            try:
+                with use_backend("native"):
+                    got.append(_visibility(pos[None], faces, H, W, cull))
+                    got.append(rasterize(pos, faces, (H, W), cull_backfaces=cull))
+            finally:
+                kernel.set_simd(before)
+        with use_backend("reference"):
+            ref = _visibility(pos[None], faces, H, W, cull)
+        assert torch.equal(got[0][0], got[2][0]) and torch.equal(got[0][1], got[2][1])
+        assert torch.equal(got[0][0], ref[0]) and torch.equal(got[0][1], ref[1])
+        for name in ("tri_id", "bary", "depth", "bary_dx", "bary_dy"):
+            assert torch.equal(getattr(got[1], name), getattr(got[3], name)), name
+        assert (got[0][0] >= 0).sum() > H * W // 4

@@ -28,7 +28,12 @@
 // decisions on exact values, and the small triangles it finds covering
 // centres are listed with those centres, so that their bands only set up
 // the depth plane. On icosphere(8) at 512^2 (1.3M triangles of ~0.2 px),
-// one thread: vertices 8 -> 4 ms, triangles 43 -> 24, bands 18 -> 9.
+// one thread: vertices 8 -> 4 ms, triangles 43 -> 24, bands 18 -> 9. Each
+// band resolves its z-buffer in a per-thread buffer in cache and writes its
+// rows out once at the end (clearing the outputs first was a second pass
+// over them, about 40 % of the bands' time on spot at 512^2); in plain mode
+// (rasterize: one layer, no floor, no count) the exact path's rows then
+// take four centres at a time (exact_row_avx2, same decisions).
 #include "common.h"
 #include "kernels.h"
 
@@ -623,6 +628,52 @@ __attribute__((target("avx2,fma"))) unsigned dropped8(const int64_t* fv, const V
   g.direct = small_bits & keep_small;
   return (out | dropped_box | (small_bits & ~keep_small)) & 0xffu;
 }
+
+// The z-buffer's exact-path row loop (plain mode) four centres at a time:
+// columns cs .. ce of one row of one triangle, E0..E2 its edge functions at
+// cs and s0..s2 their steps a column, zb / ib the band's depths and ids of
+// the row (indexed by column; three slots of slack past the last). The same
+// int64 edge tests, the same float64 depth (z0 + zx (x - x0)) + dy and the
+// same (depth, id) order as the scalar loop, lane by lane: each centre is
+// its own decision, so the result is the scalar one. Lanes past ce write
+// back what they read.
+// E + i s in lane i.
+DT_AVX2 __m256i lanes_from(int64_t E, int64_t s) {
+  return _mm256_add_epi64(_mm256_set1_epi64x(E), _mm256_setr_epi64x(0, s, s + s, s + s + s));
+}
+
+__attribute__((target("avx2,fma"))) void exact_row_avx2(double* zb, int64_t* ib, const double* xs, int64_t cs,
+                                                        int64_t ce, int64_t E0, int64_t E1, int64_t E2, int64_t s0,
+                                                        int64_t s1, int64_t s2, int64_t t0, int64_t t1, int64_t t2,
+                                                        double z0, double zx, double x0, double dy, int64_t f) {
+  const __m256i lane = _mm256_setr_epi64x(0, 1, 2, 3);
+  __m256i e0 = lanes_from(E0, s0), e1 = lanes_from(E1, s1), e2 = lanes_from(E2, s2);
+  const __m256i d0 = _mm256_set1_epi64x(4 * s0), d1 = _mm256_set1_epi64x(4 * s1), d2 = _mm256_set1_epi64x(4 * s2);
+  // E >= t as E > t - 1 (t is 0 or 1).
+  const __m256i u0 = _mm256_set1_epi64x(t0 - 1), u1 = _mm256_set1_epi64x(t1 - 1), u2 = _mm256_set1_epi64x(t2 - 1);
+  const __m256d vz0 = _mm256_set1_pd(z0), vzx = _mm256_set1_pd(zx), vx0 = _mm256_set1_pd(x0), vdy = _mm256_set1_pd(dy);
+  const __m256d lo = _mm256_set1_pd(-1.0), hi = _mm256_set1_pd(1.0);
+  const __m256i vf = _mm256_set1_epi64x(f);
+  for (int64_t c = cs; c <= ce; c += 4) {
+    __m256i in = _mm256_cmpgt_epi64(_mm256_set1_epi64x(ce - c + 1), lane);
+    in = _mm256_and_si256(in, _mm256_cmpgt_epi64(e0, u0));
+    in = _mm256_and_si256(in, _mm256_cmpgt_epi64(e1, u1));
+    in = _mm256_and_si256(in, _mm256_cmpgt_epi64(e2, u2));
+    e0 = _mm256_add_epi64(e0, d0), e1 = _mm256_add_epi64(e1, d1), e2 = _mm256_add_epi64(e2, d2);
+    if (_mm256_testz_si256(in, in)) continue;
+    const __m256d z = _mm256_add_pd(_mm256_add_pd(vz0, _mm256_mul_pd(vzx, _mm256_sub_pd(_mm256_loadu_pd(xs + c), vx0))), vdy);
+    const __m256d old = _mm256_loadu_pd(zb + c);
+    const __m256i oid = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(ib + c));
+    const __m256d range = _mm256_and_pd(_mm256_cmp_pd(z, lo, _CMP_GE_OQ), _mm256_cmp_pd(z, hi, _CMP_LE_OQ));
+    const __m256d nearer = _mm256_or_pd(_mm256_cmp_pd(z, old, _CMP_LT_OQ),
+                                        _mm256_and_pd(_mm256_cmp_pd(z, old, _CMP_EQ_OQ),
+                                                      _mm256_castsi256_pd(_mm256_cmpgt_epi64(oid, vf))));
+    const __m256d win = _mm256_and_pd(_mm256_castsi256_pd(in), _mm256_and_pd(range, nearer));
+    _mm256_storeu_pd(zb + c, _mm256_blendv_pd(old, z, win));
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(ib + c),
+                        _mm256_castpd_si256(_mm256_blendv_pd(_mm256_castsi256_pd(oid), _mm256_castsi256_pd(vf), win)));
+  }
+}
 #endif
 
 }  // namespace
@@ -663,7 +714,7 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
   double* out_z = depth.mutable_data_ptr<double>();
   const int64_t S = bits;
   const double sx = S > 0 ? double(W << (S - 1)) : 0.0, sy = S > 0 ? -double(H << (S - 1)) : 0.0;
-  std::vector<double> xs(W), ys(H);
+  std::vector<double> xs(W + 4, 0.0), ys(H);  // + 4: the four-pixel loop's masked lanes past the last column
   for (int64_t c = 0; c < W; ++c) xs[c] = (double(c) + 0.5) * (2.0 / double(W)) - 1.0;
   for (int64_t r = 0; r < H; ++r) ys[r] = -((double(r) + 0.5) * (2.0 / double(H)) - 1.0);
   const int64_t nb = (H + kBand - 1) / kBand;
@@ -833,16 +884,22 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
         const Ctx cxl = cx;
         Exact e;
         Float fl;
-        // K > 1: the band's k-buffer, in cache, written out per layer at the
-        // end of the band; K = 1 works in the output itself.
-        std::vector<double> kz(Kl > 1 ? kBand * Wl * Kl : 0);
-        std::vector<int64_t> ki(Kl > 1 ? kBand * Wl * Kl : 0);
+        // The band's z-buffer (K > 1: k-buffer; a count: the counts) in
+        // cache, written out at the end of the band: clearing the outputs
+        // themselves first cost a second pass over them (and their page
+        // faults, where the allocator had handed the memory back), more
+        // than the rasterization of a small mesh's band. + 4: the four-
+        // pixel loop's slack past the last column.
+        const bool vec = Plain::value && simd_on();
+        (void)vec;
+        std::vector<double> kz(kBand * Wl * Kl + 4);
+        std::vector<int64_t> ki(kBand * Wl * Kl + 4);
         for (int64_t band; (band = next_band()) >= 0;) {
           const int64_t R0 = band * kBand, R1 = std::min(Hl, R0 + kBand);
           // Pixel p's K entries start at zb / ib + (p - p0) * K.
-          double* zb = Kl > 1 ? kz.data() : ozl;
-          int64_t* ib = Kl > 1 ? ki.data() : oidl;
-          const int64_t p0 = Kl > 1 ? R0 * Wl : 0;
+          double* const zb = kz.data();
+          int64_t* const ib = ki.data();
+          const int64_t p0 = R0 * Wl;
           for (int64_t j = (R0 * Wl - p0) * Kl; j < (R1 * Wl - p0) * Kl; ++j) {
             zb[j] = INFINITY;
             ib[j] = countl ? 0 : kEmpty;
@@ -851,14 +908,15 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
           auto frag = [&](int64_t p, double z, int64_t f) {
             if (!(z >= -1 && z <= 1)) return;
             if constexpr (Plain::value) {
-              if (z < ozl[p] || (z == ozl[p] && f < oidl[p])) {
-                ozl[p] = z;
-                oidl[p] = f;
+              const int64_t q = p - p0;
+              if (z < zb[q] || (z == zb[q] && f < ib[q])) {
+                zb[q] = z;
+                ib[q] = f;
               }
               return;
             }
             if (countl) {
-              ++oidl[p];
+              ++ib[p - p0];
               return;
             }
             if (floorl && !(z > bfzl[p] || (z == bfzl[p] && f > bfil[p]))) return;
@@ -916,6 +974,29 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
                 int64_t E2 = e.a[2] * qx0 + e.c[2] + e.b[2] * qy;
                 const int64_t s0 = e.a[0] * step, s1 = e.a[1] * step, s2 = e.a[2] * step;
                 const double dy = e.zy * (ysl[r] - e.y0);
+#if DT_HAVE_AVX2
+                if (vec) {
+                  // Wider boxes: first the row's span, as below.
+                  int64_t lo = 0, hi = c1 - c0;
+                  if (hi >= 8) {
+                    const int64_t Es[3] = {E0, E1, E2}, ss[3] = {s0, s1, s2};
+                    for (int k = 0; k < 3 && lo <= hi; ++k) {
+                      const int64_t d = Es[k] - e.thr[k];
+                      if (ss[k] > 0)
+                        lo = std::max(lo, -floor_div(d, ss[k]));
+                      else if (ss[k] < 0)
+                        hi = std::min(hi, floor_div(d, -ss[k]));
+                      else if (d < 0)
+                        hi = -1;
+                    }
+                    if (lo > hi) continue;
+                  }
+                  const int64_t q = (r - R0) * Wl;
+                  exact_row_avx2(zb + q, ib + q, xsl, c0 + lo, c0 + hi, E0 + s0 * lo, E1 + s1 * lo, E2 + s2 * lo, s0,
+                                 s1, s2, t0, t1, t2, z0, zx, x0, dy, f);
+                  continue;
+                }
+#endif
                 if (c1 - c0 < 8) {
                   for (int64_t c = c0; c <= c1; ++c, E0 += s0, E1 += s1, E2 += s2) {
                     if (E0 >= t0 && E1 >= t1 && E2 >= t2) frag(r * Wl + c, (z0 + zx * (xsl[c] - x0)) + dy, f);
@@ -958,9 +1039,14 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
               for (int64_t k = 0; k < Kl; ++k) out_idl[k * Bl * HWl + bil * HWl + p] = is[k] == kEmpty ? -1 : is[k];
               ozl[p] = zb[(p - p0) * Kl + Kl - 1];
             }
-          } else if (!countl) {
-            for (int64_t p = R0 * Wl; p < R1 * Wl; ++p)
-              if (oidl[p] == kEmpty) oidl[p] = -1;
+          } else if (countl) {
+            std::memcpy(oidl + R0 * Wl, ib, sizeof(int64_t) * (R1 - R0) * Wl);
+          } else {
+            for (int64_t p = R0 * Wl; p < R1 * Wl; ++p) {
+              const int64_t i = ib[p - p0];
+              oidl[p] = i == kEmpty ? -1 : i;
+            }
+            std::memcpy(ozl + R0 * Wl, zb, sizeof(double) * (R1 - R0) * Wl);
           }
         }
       });
