@@ -856,6 +856,58 @@ class _NativeFragments(torch.autograd.Function):
         return (g, *none[1:])
 
 
+class _Rejected(Exception):
+    """The native kernel found a non-finite position or an index out of range (the caller's checks name it)."""
+
+
+class _NativeRaster(_NativeFragments):
+    """Visibility and the differentiable pass in one native call (``raster_fused``: each band of rows gets its
+    fragments right after its z-buffer, while its pixels and triangles are in cache).
+
+    Outputs (tri_id, then :class:`_NativeFragments`' unpacked outputs); the same values as the two passes, and
+    the same backward (tri_id and idx take no gradient).
+    """
+
+    @staticmethod
+    def forward(ctx, pos: Tensor, faces: Tensor, spec: tuple[int, int, bool, int], mod, packed: bool, offset: int,
+                derivatives: bool = True):
+        H, W, cull, bits = spec
+        out = mod.raster_fused(pos.detach(), faces, H, W, cull, bits, derivatives=derivatives)
+        if len(out) == 2:
+            raise _Rejected()
+        tri_id = out[0].view(pos.shape[0], H, W)
+        ctx.save_for_backward(pos, faces, tri_id, out[2])
+        ctx.packed, ctx.mod = False, mod
+        ctx.mark_non_differentiable(tri_id, out[2])
+        ctx.set_materialize_grads(False)
+        return (tri_id, *out[2:])
+
+    @staticmethod
+    def backward(ctx, _gid: None, _gidx: None, *grads: Optional[Tensor]):
+        return _NativeFragments.backward(ctx, None, *grads)
+
+
+def _rasterize_fused(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_backfaces: bool,
+                     derivatives: bool, mod) -> Fragments:
+    """:func:`rasterize` on the native kernel in one call (the checks as :func:`visible_layers` makes them)."""
+    pos = _check_pos(pos, finite=False)
+    faces = check_index("faces", faces, pos.shape[1], "number of vertices", pos.device, check_range=False)
+    H, W = _check_resolution(resolution)
+    _check_memory(pos.shape[0], H, W, pos.dtype)
+    try:
+        tri_id, idx, bary_c, dx_c, dy_c, bary, depth, bary_dx, bary_dy = _NativeRaster.apply(
+            pos, faces.contiguous(), (H, W, cull_backfaces, _subpixel_bits(H, W)), mod, False, 0, derivatives)
+    except _Rejected:
+        _check_pos(pos)
+        check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
+        raise RuntimeError("rasterize: the native kernel rejected its input") from None  # not reached
+    if not derivatives:
+        dx_c = dy_c = bary_dx = bary_dy = None
+    frags = Fragments(tri_id=tri_id, bary=bary, depth=depth, bary_dx=bary_dx, bary_dy=bary_dy)
+    object.__setattr__(frags, "_compact", (idx, bary_c, dx_c, dy_c))
+    return frags
+
+
 def rasterize(
     pos: Tensor,
     faces: Tensor,
@@ -917,6 +969,13 @@ def rasterize(
     """
     if not isinstance(derivatives, bool):
         raise TypeError(f"rasterize: derivatives must be a bool, got {type(derivatives).__name__}")
+    from .. import _native as native
+
+    # One layer on the native kernel: visibility and fragments in one pass, no depth buffer kept (the floor
+    # of depth peeling's next layer, which rasterize does not peel).
+    mod = native.kernel(pos) if isinstance(pos, Tensor) else None
+    if mod is not None:
+        return _rasterize_fused(pos, faces, resolution, cull_backfaces, derivatives, mod)
     return next(visible_layers(pos, faces, resolution, cull_backfaces, functools.partial(
         fragments_of, derivatives=derivatives)))
 

@@ -3,6 +3,7 @@ triangle ids against a float64 ray cast, depth peeling."""
 
 from __future__ import annotations
 
+import functools
 import itertools
 
 import numpy as np
@@ -570,3 +571,43 @@ def test_four_pixel_row_loop_matches_scalar_path(dtype, cull):
         for name in ("tri_id", "bary", "depth", "bary_dx", "bary_dy"):
             assert torch.equal(getattr(got[1], name), getattr(got[3], name)), name
         assert (got[0][0] >= 0).sum() > H * W // 4
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("derivatives", [True, False])
+def test_fused_pass_matches_the_two_passes(dtype, derivatives):
+    # rasterize on the kernel runs raster_fused (each band's fragments right after its z-buffer): the same ids,
+    # values, compact copies and gradients as the visibility pass followed by fragments_of, on a batch of two.
+    from difftex.geometry import raster as R
+
+    gen = torch.Generator().manual_seed(7)
+    V, F = icosphere(3, dtype=torch.float64)
+    sphere = camera.transform(V, _camera(gen, 2.2, 50.0))
+    quads, qf = _quads([0.3, -0.2, 0.6, 0.3], torch.float64)
+    pos = torch.stack((torch.cat((sphere, quads)), 1.5 * torch.cat((quads.flip(0), sphere)))).to(dtype)
+    faces = torch.cat((F, qf + V.shape[0]))
+    H, W = 29, 35
+    p1, p2 = pos.clone().requires_grad_(True), pos.clone().requires_grad_(True)
+    with use_backend("native"):
+        fused = rasterize(p1, faces, (H, W), derivatives=derivatives)
+        two = next(R.visible_layers(p2, faces, (H, W), False, functools.partial(R.fragments_of,
+                                                                              derivatives=derivatives)))
+    for name in ("tri_id", "bary", "depth", "bary_dx", "bary_dy"):
+        a, b = getattr(fused, name), getattr(two, name)
+        assert (a is None and b is None) or torch.equal(a, b), name
+    for a, b in zip(fused._compact, two._compact):
+        assert (a is None and b is None) or torch.equal(a, b)
+    uv = torch.rand(pos.shape[1], 2, generator=gen, dtype=dtype)
+    for fr, p in ((fused, p1), (two, p2)):
+        loss = fr.bary.square().sum() + fr.depth.sum() + difftex.interpolate(uv, faces, fr).square().sum()
+        if derivatives:
+            loss = loss + fr.bary_dx.abs().sum() + fr.bary_dy.square().sum()
+        loss.backward()
+    assert torch.equal(p1.grad, p2.grad)
+    # The kernel's own input checks still name the problem.
+    bad = pos.clone()
+    bad[1, 3, 0] = float("nan")
+    with use_backend("native"), pytest.raises(ValueError, match="pos.*non-finite"):
+        rasterize(bad, faces, (H, W), derivatives=derivatives)
+    with use_backend("native"), pytest.raises(ValueError, match="faces"):
+        rasterize(pos, torch.cat((faces, torch.tensor([[0, 1, 10**6]]))), (H, W), derivatives=derivatives)

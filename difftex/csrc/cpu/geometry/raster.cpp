@@ -34,6 +34,10 @@
 // over them, about 40 % of the bands' time on spot at 512^2); in plain mode
 // (rasterize: one layer, no floor, no count) the exact path's rows then
 // take four centres at a time (exact_row_avx2, same decisions).
+// raster_fused (rasterize's one call on the CPU) hands each band, once its
+// ids are written, to raster_fragments' row code (FragRows) on the same
+// thread, while the band's ids and triangles are in cache: one parallel
+// region, no second pass over the ids, no depth buffer written out.
 #include "common.h"
 #include "kernels.h"
 
@@ -676,11 +680,34 @@ __attribute__((target("avx2,fma"))) void exact_row_avx2(double* zb, int64_t* ib,
 }
 #endif
 
+// The fused pass (raster_fused): called by the thread that resolved band
+// R0 .. R1 - 1 of batch item bi, right after its rows of ids (all_ids:
+// the whole [B * H * W] output) are written, while they and the band's
+// triangles are in cache.
+struct BandSink {
+  virtual void band(const int64_t* all_ids, int64_t bi, int64_t R0, int64_t R1) = 0;
+
+ protected:
+  ~BandSink() = default;
+};
+
+std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull, int64_t bits,
+                                       Tensor floor_z, Tensor floor_id, bool count, int64_t layers, BandSink* sink,
+                                       bool keep_depth);
+
 }  // namespace
 
 std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W,
                                                 bool cull, int64_t bits, Tensor floor_z,
                                                 Tensor floor_id, bool count, int64_t layers) {
+  return raster_impl(pos, faces, H, W, cull, bits, floor_z, floor_id, count, layers, nullptr, true);
+}
+
+namespace {
+
+std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull, int64_t bits,
+                                       Tensor floor_z, Tensor floor_id, bool count, int64_t layers, BandSink* sink,
+                                       bool keep_depth) {
   DT_CHECK(pos.is_cpu() && (pos.scalar_type() == kFloat64 || pos.scalar_type() == kFloat32) &&
                   pos.dim() == 3 && pos.size(2) == 4,
               "raster: pos must be a CPU float32 or float64 tensor [B, V, 4]");
@@ -707,11 +734,13 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
   // K > 1: ids layer-major [K, B * H * W] (each layer contiguous) and the
   // depth of the K-th layer only (the floor of any further layer).
   auto ids = empty({K * B * HW}, kInt64);
-  auto depth = empty({B * HW}, kFloat64);
+  DT_CHECK(!sink || (K == 1 && !has_floor && !count), "raster: the fused pass is for one plain layer");
+  DT_CHECK(keep_depth || sink, "raster: the depth is kept unless fused");
+  auto depth = empty({keep_depth ? B * HW : 0}, kFloat64);
   const double* fz = has_floor ? floor_z.mutable_data_ptr<double>() : nullptr;
   const int64_t* fi = has_floor ? floor_id.mutable_data_ptr<int64_t>() : nullptr;
   int64_t* out_id = ids.mutable_data_ptr<int64_t>();
-  double* out_z = depth.mutable_data_ptr<double>();
+  double* out_z = keep_depth ? depth.mutable_data_ptr<double>() : nullptr;
   const int64_t S = bits;
   const double sx = S > 0 ? double(W << (S - 1)) : 0.0, sy = S > 0 ? -double(H << (S - 1)) : 0.0;
   std::vector<double> xs(W + 4, 0.0), ys(H);  // + 4: the four-pixel loop's masked lanes past the last column
@@ -862,7 +891,7 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
     });
     // Bands: each thread owns its rows of the output.
     int64_t* oid = out_id + bi * HW;
-    double* oz = out_z + bi * HW;
+    double* oz = out_z ? out_z + bi * HW : nullptr;
     const double* bfz = has_floor ? fz + bi * HW : nullptr;
     const int64_t* bfi = has_floor ? fi + bi * HW : nullptr;
     // Plain (one layer, no floor, no count: rasterize itself) is compiled
@@ -882,6 +911,7 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
         double* const ozl = oz;
         int64_t *const oidl = oid, *const out_idl = out_id;
         const Ctx cxl = cx;
+        BandSink* const sinkl = sink;
         Exact e;
         Float fl;
         // The band's z-buffer (K > 1: k-buffer; a count: the counts) in
@@ -1046,7 +1076,8 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
               const int64_t i = ib[p - p0];
               oidl[p] = i == kEmpty ? -1 : i;
             }
-            std::memcpy(ozl + R0 * Wl, zb, sizeof(double) * (R1 - R0) * Wl);
+            if (ozl) std::memcpy(ozl + R0 * Wl, zb, sizeof(double) * (R1 - R0) * Wl);
+            if (sinkl) sinkl->band(out_idl, bil, R0, R1);
           }
         }
       });
@@ -1058,6 +1089,8 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
   }
   return {ids, depth};
 }
+
+}  // namespace
 
 namespace {
 
@@ -1208,6 +1241,90 @@ struct Tri {
 
 }  // namespace
 
+// One thread's rows of raster_fragments' outputs: row(r, n) writes image
+// row r (of all B * H) of the dense outputs from tri_id (pid), its covered
+// pixels also in compact form from slot n on. o as raster_fragments' outputs
+// after idx (packed: rast, db; else bary_c, dx_c, dy_c, bary, depth,
+// bary_dx, bary_dy); the compact ones may point into a band's own buffers
+// (the fused pass: n counts from 0 there).
+template <typename T>
+struct FragRows {
+  const T* pp;
+  const int64_t *pf, *pid;
+  int64_t V, F, H, W;
+  bool packed, derivatives;
+  int64_t offset;
+  T* const* o;
+  int64_t* pidx;
+  Tri tri{};  // value-initialised: gcc cannot see that load() runs before the first use
+  int64_t loaded = -1;  // the (batch, face) in tri
+
+  int64_t row(int64_t r, int64_t n) {
+    T b[3] = {}, dx[3] = {}, dy[3] = {};
+    // Pixel centres and scales in double, as the torch path's (_pixels).
+    const double sx = 2.0 / double(W), sy = -2.0 / double(H);
+    const double hx = 2.0 / double(W), hy = 2.0 / double(H);
+    const int64_t bi = r / H, rw = r - bi * H;
+    // _pixel_centres: (i + 0.5) * (2 / n) - 1, negated for rows.
+    const double y = -((double(rw) + 0.5) * hy - 1.0);
+    int64_t bg = r * W;  // the current background run is [bg, p)
+    auto zero_run = [&](int64_t end) {
+      if (end == bg) return;
+      const size_t m = size_t(end - bg) * sizeof(T);
+      if (packed) {
+        std::memset(o[0] + 4 * bg, 0, 4 * m);
+        if (derivatives) std::memset(o[1] + 4 * bg, 0, 4 * m);
+      } else {
+        std::memset(o[3] + 3 * bg, 0, 3 * m);
+        if (derivatives)
+          for (int k : {5, 6}) std::memset(o[k] + 3 * bg, 0, 3 * m);
+        std::memset(o[4] + bg, 0, m);
+      }
+    };
+    for (int64_t col = 0; col < W; ++col) {
+      const int64_t p = r * W + col;
+      const int64_t f = pid[p];
+      if (f < 0) continue;  // background costs one test (most of a deep peeling layer)
+      // Small triangles change every pixel: their face rows 2 kAhead
+      // pixels ahead, then (those rows in cache) their corners.
+      if (col + 2 * kAhead < W && pid[p + 2 * kAhead] >= 0) DT_PREFETCH(pf + 3 * pid[p + 2 * kAhead], false);
+      if (col + kAhead < W && pid[p + kAhead] >= 0 && pid[p + kAhead] != pid[p + kAhead - 1]) {
+        const int64_t* fa = pf + 3 * pid[p + kAhead];
+        for (int i = 0; i < 3; ++i) DT_PREFETCH(pp + 4 * (bi * V + fa[i]), false);
+      }
+      zero_run(p);
+      bg = p + 1;
+      if (bi * F + f != loaded) {
+        const int64_t rows3[3] = {bi * V + pf[3 * f], bi * V + pf[3 * f + 1], bi * V + pf[3 * f + 2]};
+        tri.load(pp, rows3);
+        loaded = bi * F + f;
+      }
+      const double x = (double(col) + 0.5) * hx - 1.0;
+      const T z = tri.eval(x, y, sx, sy, b, derivatives ? dx : nullptr, dy);
+      pidx[n] = p;
+      if (packed) {
+        T* ra = o[0] + 4 * p;
+        ra[0] = b[0], ra[1] = b[1], ra[2] = z, ra[3] = T(f + 1 + offset);
+        if (derivatives) {
+          T* db = o[1] + 4 * p;
+          db[0] = dx[0], db[1] = dy[0], db[2] = dx[1], db[3] = dy[1];
+        }
+      } else {
+        for (int k = 0; k < 3; ++k) o[0][3 * n + k] = o[3][3 * p + k] = b[k];
+        if (derivatives)
+          for (int k = 0; k < 3; ++k) {
+            o[1][3 * n + k] = o[5][3 * p + k] = dx[k];
+            o[2][3 * n + k] = o[6][3 * p + k] = dy[k];
+          }
+        o[4][p] = z;
+      }
+      ++n;
+    }
+    zero_run((r + 1) * W);
+    return n;
+  }
+};
+
 // rasterize's differentiable pass, forward only (geometry/raster.py
 // fragments_of; its torch formula gives the gradients). One threaded pass
 // over the pixels of tri_id [B, H, W] (-1 background) writes the dense
@@ -1264,76 +1381,110 @@ std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
     int64_t* pidx = idx.mutable_data_ptr<int64_t>();
     std::vector<T*> o;
     for (size_t i = 1; i < out.size(); ++i) o.push_back(out[i].mutable_data_ptr<T>());
-    // Pixel centres and scales in double, as the torch path's (_pixels).
-    const double sx = 2.0 / double(W), sy = -2.0 / double(H);
-    const double hx = 2.0 / double(W), hy = 2.0 / double(H);
     constexpr int64_t kRows = 8;  // rows an item
     dynamic_for((rows + kRows - 1) / kRows, [&](auto&& next_block) {
-      T b[3] = {}, dx[3] = {}, dy[3] = {};
-      Tri tri{};  // value-initialised: gcc cannot see that load() runs before the first use
-      int64_t loaded = -1;  // the (batch, face) in tri
+      FragRows<T> fr{pp, pf, pid, V, F, H, W, packed, derivatives, offset, o.data(), pidx};
       for (int64_t blk; (blk = next_block()) >= 0;)
-      for (int64_t r = blk * kRows; r < std::min(rows, (blk + 1) * kRows); ++r) {
-        const int64_t bi = r / H, row = r - bi * H;
-        // _pixel_centres: (i + 0.5) * (2 / n) - 1, negated for rows.
-        const double y = -((double(row) + 0.5) * hy - 1.0);
-        int64_t n = first[r];
-        int64_t bg = r * W;  // the current background run is [bg, p)
-        auto zero_run = [&](int64_t end) {
-          if (end == bg) return;
-          const size_t m = size_t(end - bg) * sizeof(T);
-          if (packed) {
-            std::memset(o[0] + 4 * bg, 0, 4 * m);
-            if (derivatives) std::memset(o[1] + 4 * bg, 0, 4 * m);
-          } else {
-            std::memset(o[3] + 3 * bg, 0, 3 * m);
-            if (derivatives)
-              for (int k : {5, 6}) std::memset(o[k] + 3 * bg, 0, 3 * m);
-            std::memset(o[4] + bg, 0, m);
-          }
-        };
-        for (int64_t col = 0; col < W; ++col) {
-          const int64_t p = r * W + col;
-          const int64_t f = pid[p];
-          if (f < 0) continue;  // background costs one test (most of a deep peeling layer)
-          // Small triangles change every pixel: their face rows 2 kAhead
-          // pixels ahead, then (those rows in cache) their corners.
-          if (col + 2 * kAhead < W && pid[p + 2 * kAhead] >= 0) DT_PREFETCH(pf + 3 * pid[p + 2 * kAhead], false);
-          if (col + kAhead < W && pid[p + kAhead] >= 0 && pid[p + kAhead] != pid[p + kAhead - 1]) {
-            const int64_t* fa = pf + 3 * pid[p + kAhead];
-            for (int i = 0; i < 3; ++i) DT_PREFETCH(pp + 4 * (bi * V + fa[i]), false);
-          }
-          zero_run(p);
-          bg = p + 1;
-          if (bi * F + f != loaded) {
-            const int64_t rows3[3] = {bi * V + pf[3 * f], bi * V + pf[3 * f + 1], bi * V + pf[3 * f + 2]};
-            tri.load(pp, rows3);
-            loaded = bi * F + f;
-          }
-          const double x = (double(col) + 0.5) * hx - 1.0;
-          const T z = tri.eval(x, y, sx, sy, b, derivatives ? dx : nullptr, dy);
-          pidx[n] = p;
-          if (packed) {
-            T* ra = o[0] + 4 * p;
-            ra[0] = b[0], ra[1] = b[1], ra[2] = z, ra[3] = T(f + 1 + offset);
-            if (derivatives) {
-              T* db = o[1] + 4 * p;
-              db[0] = dx[0], db[1] = dy[0], db[2] = dx[1], db[3] = dy[1];
-            }
-          } else {
-            for (int k = 0; k < 3; ++k) o[0][3 * n + k] = o[3][3 * p + k] = b[k];
-            if (derivatives)
-              for (int k = 0; k < 3; ++k) {
-                o[1][3 * n + k] = o[5][3 * p + k] = dx[k];
-                o[2][3 * n + k] = o[6][3 * p + k] = dy[k];
-              }
-            o[4][p] = z;
-          }
-          ++n;
+        for (int64_t r = blk * kRows; r < std::min(rows, (blk + 1) * kRows); ++r) fr.row(r, first[r]);
+    });
+  });
+  return out;
+}
+
+namespace {
+
+// raster_fused's band work: the band's rows of the dense outputs, and its
+// covered pixels in compact form in the band's own buffers (their global
+// slots are known only once every band is done; the copy into place is
+// one memcpy per band and output).
+template <typename T>
+struct FusedSink final : BandSink {
+  const T* pp;
+  const int64_t* pf;
+  int64_t V, F, H, W, nb;
+  bool derivatives;
+  T *bary, *depth, *bdx, *bdy;
+  struct Chunk {
+    int64_t n = 0;
+    std::unique_ptr<int64_t[]> idx;
+    std::unique_ptr<T[]> b, dx, dy;
+  };
+  std::vector<Chunk> chunks;  // [B * nb], batch-major: flat pixel order
+
+  void band(const int64_t* all_ids, int64_t bi, int64_t R0, int64_t R1) override {
+    Chunk& ch = chunks[bi * nb + R0 / kBand];
+    const int64_t r0 = bi * H + R0, r1 = bi * H + R1;
+    int64_t n = 0;
+    for (int64_t p = r0 * W; p < r1 * W; ++p) n += all_ids[p] >= 0;
+    ch.n = n;
+    ch.idx.reset(new int64_t[std::max<int64_t>(n, 1)]);
+    ch.b.reset(new T[3 * std::max<int64_t>(n, 1)]);
+    if (derivatives) {
+      ch.dx.reset(new T[3 * std::max<int64_t>(n, 1)]);
+      ch.dy.reset(new T[3 * std::max<int64_t>(n, 1)]);
+    }
+    T* const o[7] = {ch.b.get(), ch.dx.get(), ch.dy.get(), bary, depth, bdx, bdy};
+    FragRows<T> fr{pp, pf, all_ids, V, F, H, W, false, derivatives, 0, o, ch.idx.get()};
+    int64_t m = 0;
+    for (int64_t r = r0; r < r1; ++r) m = fr.row(r, m);
+  }
+};
+
+}  // namespace
+
+std::vector<Tensor> raster_fused(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull, int64_t bits,
+                                 bool derivatives, bool keep_depth) {
+  DT_CHECK(pos.is_cpu() && (pos.scalar_type() == kFloat64 || pos.scalar_type() == kFloat32) && pos.dim() == 3 &&
+               pos.size(2) == 4 && H > 0 && W > 0,
+           "raster_fused: pos must be a CPU float32 or float64 tensor [B, V, 4]");
+  pos = contig(pos);
+  faces = contig(faces);
+  const int64_t B = pos.size(0), V = pos.size(1), F = faces.size(0), nb = (H + kBand - 1) / kBand;
+  auto opt = options_of(pos);
+  auto none = [&] { return empty({0}, opt); };
+  // Every byte of the dense outputs is written by the bands (zeros on background).
+  Tensor bary = empty({B, H, W, 3}, opt), depth = empty({B, H, W}, opt);
+  Tensor bdx = derivatives ? empty({B, H, W, 3}, opt) : none(), bdy = derivatives ? empty({B, H, W, 3}, opt) : none();
+  std::vector<Tensor> out;
+  DT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "raster_fused", [&] {
+    using T = scalar_t;
+    FusedSink<T> sink;
+    sink.pp = pos.mutable_data_ptr<T>();
+    sink.pf = faces.numel() ? faces.mutable_data_ptr<int64_t>() : nullptr;
+    sink.V = V, sink.F = F, sink.H = H, sink.W = W, sink.nb = nb, sink.derivatives = derivatives;
+    sink.bary = bary.mutable_data_ptr<T>();
+    sink.depth = depth.mutable_data_ptr<T>();
+    sink.bdx = derivatives ? bdx.mutable_data_ptr<T>() : nullptr;
+    sink.bdy = derivatives ? bdy.mutable_data_ptr<T>() : nullptr;
+    sink.chunks.resize(B * nb);
+    auto [ids, zbuf] = raster_impl(pos, faces, H, W, cull, bits, empty({0}, kFloat64), empty({0}, kInt64), false, 1,
+                                   &sink, keep_depth);
+    if (ids.numel() == 0 && B * H * W > 0) {  // a non-finite position or a bad index: the caller names it
+      out = {ids, zbuf};
+      return;
+    }
+    std::vector<int64_t> at(B * nb + 1, 0);
+    for (int64_t c = 0; c < B * nb; ++c) at[c + 1] = at[c] + sink.chunks[c].n;
+    const int64_t N = at[B * nb];
+    Tensor idx = empty({N}, kInt64), bc = empty({N, 3}, opt);
+    Tensor dxc = derivatives ? empty({N, 3}, opt) : none(), dyc = derivatives ? empty({N, 3}, opt) : none();
+    int64_t* pidx = idx.mutable_data_ptr<int64_t>();
+    T* pb = bc.mutable_data_ptr<T>();
+    T* pdx = derivatives ? dxc.mutable_data_ptr<T>() : nullptr;
+    T* pdy = derivatives ? dyc.mutable_data_ptr<T>() : nullptr;
+    parallel_for(0, B * nb, 8, [&](int64_t lo, int64_t hi) {
+      for (int64_t c = lo; c < hi; ++c) {
+        const auto& ch = sink.chunks[c];
+        if (!ch.n) continue;
+        std::memcpy(pidx + at[c], ch.idx.get(), sizeof(int64_t) * ch.n);
+        std::memcpy(pb + 3 * at[c], ch.b.get(), sizeof(T) * 3 * ch.n);
+        if (derivatives) {
+          std::memcpy(pdx + 3 * at[c], ch.dx.get(), sizeof(T) * 3 * ch.n);
+          std::memcpy(pdy + 3 * at[c], ch.dy.get(), sizeof(T) * 3 * ch.n);
         }
-        zero_run((r + 1) * W);
       }
     });
+    out = {ids, zbuf, idx, bc, dxc, dyc, bary, depth, bdx, bdy};
   });
   return out;
 }
