@@ -18,8 +18,8 @@ pytestmark = pytest.mark.skipif(native.load() is None, reason="native kernels no
 
 ALL_OPS = ("taps_forward", "taps_backward", "tap_front", "box2", "box2_adjoint", "ewa_forward", "ewa_backward",
            "sample_forward", "sample_backward", "raster", "raster_fragments", "raster_fused",
-           "raster_fragments_backward", "cube_front", "cube_front_backward", "cube_read", "cube_read_backward", "sat_forward", "sat_backward",
-           "ripmap_build", "ripmap_adjoint", "ripmap_read", "ripmap_read_backward")
+           "raster_fragments_backward", "cube_front", "cube_front_backward", "cube_read", "cube_read_backward",
+           "sat_forward", "sat_backward", "ripmap_build", "ripmap_adjoint", "ripmap_read", "ripmap_read_backward")
 
 
 class _Recorder:
