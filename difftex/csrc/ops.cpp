@@ -139,8 +139,8 @@ std::vector<Tensor> raster_fragments_op(Tensor pos, Tensor faces, Tensor tri_id,
 }
 
 std::vector<Tensor> raster_fused_op(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull, int64_t bits,
-                                    bool derivatives, bool keep_depth) {
-  return raster_fused(pos, faces, H, W, cull, bits, derivatives, keep_depth);
+                                    bool derivatives, bool keep_depth, int64_t layers) {
+  return raster_fused(pos, faces, H, W, cull, bits, derivatives, keep_depth, layers);
 }
 
 Tensor raster_fragments_backward_op(Tensor pos, Tensor faces, Tensor tri_id, Tensor idx, OptTensors grads,
@@ -254,7 +254,7 @@ STABLE_TORCH_LIBRARY(difftex, m) {
   m.def("raster_fragments(Tensor pos, Tensor faces, Tensor tri_id, bool packed, int offset, bool derivatives) "
         "-> Tensor[]");
   m.def("raster_fused(Tensor pos, Tensor faces, int H, int W, bool cull, int bits, bool derivatives, "
-        "bool keep_depth) -> Tensor[]");
+        "bool keep_depth, int layers) -> Tensor[]");
   m.def("raster_fragments_backward(Tensor pos, Tensor faces, Tensor tri_id, Tensor idx, Tensor?[] grads, "
         "bool packed) -> Tensor");
   m.def("cube_front(Tensor dirs, Tensor dx, Tensor dy, Tensor bias, float bias0, int S, int levels, float band) "

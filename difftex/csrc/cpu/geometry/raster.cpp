@@ -682,10 +682,10 @@ __attribute__((target("avx2,fma"))) void exact_row_avx2(double* zb, int64_t* ib,
 
 // The fused pass (raster_fused): called by the thread that resolved band
 // R0 .. R1 - 1 of batch item bi, right after its rows of ids (all_ids:
-// the whole [B * H * W] output) are written, while they and the band's
-// triangles are in cache.
+// the layer's whole [B * H * W] output) are written, while they and the
+// band's triangles are in cache; once per layer.
 struct BandSink {
-  virtual void band(const int64_t* all_ids, int64_t bi, int64_t R0, int64_t R1) = 0;
+  virtual void band(const int64_t* all_ids, int64_t bi, int64_t R0, int64_t R1, int64_t layer) = 0;
 
  protected:
   ~BandSink() = default;
@@ -734,7 +734,7 @@ std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int6
   // K > 1: ids layer-major [K, B * H * W] (each layer contiguous) and the
   // depth of the K-th layer only (the floor of any further layer).
   auto ids = empty({K * B * HW}, kInt64);
-  DT_CHECK(!sink || (K == 1 && !has_floor && !count), "raster: the fused pass is for one plain layer");
+  DT_CHECK(!sink || (!has_floor && !count), "raster: the fused pass takes no floor and no count");
   DT_CHECK(keep_depth || sink, "raster: the depth is kept unless fused");
   auto depth = empty({keep_depth ? B * HW : 0}, kFloat64);
   const double* fz = has_floor ? floor_z.mutable_data_ptr<double>() : nullptr;
@@ -1067,8 +1067,10 @@ std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int6
             for (int64_t p = R0 * Wl; p < R1 * Wl; ++p) {
               const int64_t* is = ib + (p - p0) * Kl;
               for (int64_t k = 0; k < Kl; ++k) out_idl[k * Bl * HWl + bil * HWl + p] = is[k] == kEmpty ? -1 : is[k];
-              ozl[p] = zb[(p - p0) * Kl + Kl - 1];
+              if (ozl) ozl[p] = zb[(p - p0) * Kl + Kl - 1];
             }
+            if (sinkl)
+              for (int64_t k = 0; k < Kl; ++k) sinkl->band(out_idl + k * Bl * HWl, bil, R0, R1, k);
           } else if (countl) {
             std::memcpy(oidl + R0 * Wl, ib, sizeof(int64_t) * (R1 - R0) * Wl);
           } else {
@@ -1077,7 +1079,7 @@ std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int6
               oidl[p] = i == kEmpty ? -1 : i;
             }
             if (ozl) std::memcpy(ozl + R0 * Wl, zb, sizeof(double) * (R1 - R0) * Wl);
-            if (sinkl) sinkl->band(out_idl, bil, R0, R1);
+            if (sinkl) sinkl->band(out_idl, bil, R0, R1, 0);
           }
         }
       });
@@ -1401,18 +1403,18 @@ template <typename T>
 struct FusedSink final : BandSink {
   const T* pp;
   const int64_t* pf;
-  int64_t V, F, H, W, nb;
+  int64_t V, F, H, W, nb, nc;  // nc: chunks a layer (B * nb)
   bool derivatives;
-  T *bary, *depth, *bdx, *bdy;
+  std::vector<T*> bary, depth, bdx, bdy;  // a layer each
   struct Chunk {
     int64_t n = 0;
     std::unique_ptr<int64_t[]> idx;
     std::unique_ptr<T[]> b, dx, dy;
   };
-  std::vector<Chunk> chunks;  // [B * nb], batch-major: flat pixel order
+  std::vector<Chunk> chunks;  // [K, B * nb], batch-major: flat pixel order
 
-  void band(const int64_t* all_ids, int64_t bi, int64_t R0, int64_t R1) override {
-    Chunk& ch = chunks[bi * nb + R0 / kBand];
+  void band(const int64_t* all_ids, int64_t bi, int64_t R0, int64_t R1, int64_t k) override {
+    Chunk& ch = chunks[k * nc + bi * nb + R0 / kBand];
     const int64_t r0 = bi * H + R0, r1 = bi * H + R1;
     int64_t n = 0;
     for (int64_t p = r0 * W; p < r1 * W; ++p) n += all_ids[p] >= 0;
@@ -1423,7 +1425,7 @@ struct FusedSink final : BandSink {
       ch.dx.reset(new T[3 * std::max<int64_t>(n, 1)]);
       ch.dy.reset(new T[3 * std::max<int64_t>(n, 1)]);
     }
-    T* const o[7] = {ch.b.get(), ch.dx.get(), ch.dy.get(), bary, depth, bdx, bdy};
+    T* const o[7] = {ch.b.get(), ch.dx.get(), ch.dy.get(), bary[k], depth[k], bdx[k], bdy[k]};
     FragRows<T> fr{pp, pf, all_ids, V, F, H, W, false, derivatives, 0, o, ch.idx.get()};
     int64_t m = 0;
     for (int64_t r = r0; r < r1; ++r) m = fr.row(r, m);
@@ -1433,58 +1435,70 @@ struct FusedSink final : BandSink {
 }  // namespace
 
 std::vector<Tensor> raster_fused(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull, int64_t bits,
-                                 bool derivatives, bool keep_depth) {
+                                 bool derivatives, bool keep_depth, int64_t layers) {
   DT_CHECK(pos.is_cpu() && (pos.scalar_type() == kFloat64 || pos.scalar_type() == kFloat32) && pos.dim() == 3 &&
-               pos.size(2) == 4 && H > 0 && W > 0,
-           "raster_fused: pos must be a CPU float32 or float64 tensor [B, V, 4]");
+               pos.size(2) == 4 && H > 0 && W > 0 && layers >= 1,
+           "raster_fused: pos must be a CPU float32 or float64 tensor [B, V, 4], layers >= 1");
   pos = contig(pos);
   faces = contig(faces);
-  const int64_t B = pos.size(0), V = pos.size(1), F = faces.size(0), nb = (H + kBand - 1) / kBand;
+  const int64_t B = pos.size(0), V = pos.size(1), F = faces.size(0), nb = (H + kBand - 1) / kBand, K = layers;
   auto opt = options_of(pos);
   auto none = [&] { return empty({0}, opt); };
   // Every byte of the dense outputs is written by the bands (zeros on background).
-  Tensor bary = empty({B, H, W, 3}, opt), depth = empty({B, H, W}, opt);
-  Tensor bdx = derivatives ? empty({B, H, W, 3}, opt) : none(), bdy = derivatives ? empty({B, H, W, 3}, opt) : none();
+  std::vector<Tensor> dense;  // per layer: bary, depth, bary_dx, bary_dy
+  for (int64_t k = 0; k < K; ++k) {
+    dense.push_back(empty({B, H, W, 3}, opt));
+    dense.push_back(empty({B, H, W}, opt));
+    for (int d = 0; d < 2; ++d) dense.push_back(derivatives ? empty({B, H, W, 3}, opt) : none());
+  }
   std::vector<Tensor> out;
   DT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "raster_fused", [&] {
     using T = scalar_t;
     FusedSink<T> sink;
     sink.pp = pos.mutable_data_ptr<T>();
     sink.pf = faces.numel() ? faces.mutable_data_ptr<int64_t>() : nullptr;
-    sink.V = V, sink.F = F, sink.H = H, sink.W = W, sink.nb = nb, sink.derivatives = derivatives;
-    sink.bary = bary.mutable_data_ptr<T>();
-    sink.depth = depth.mutable_data_ptr<T>();
-    sink.bdx = derivatives ? bdx.mutable_data_ptr<T>() : nullptr;
-    sink.bdy = derivatives ? bdy.mutable_data_ptr<T>() : nullptr;
-    sink.chunks.resize(B * nb);
-    auto [ids, zbuf] = raster_impl(pos, faces, H, W, cull, bits, empty({0}, kFloat64), empty({0}, kInt64), false, 1,
+    sink.V = V, sink.F = F, sink.H = H, sink.W = W, sink.nb = nb, sink.nc = B * nb, sink.derivatives = derivatives;
+    for (int64_t k = 0; k < K; ++k) {
+      sink.bary.push_back(dense[4 * k].mutable_data_ptr<T>());
+      sink.depth.push_back(dense[4 * k + 1].mutable_data_ptr<T>());
+      sink.bdx.push_back(derivatives ? dense[4 * k + 2].mutable_data_ptr<T>() : nullptr);
+      sink.bdy.push_back(derivatives ? dense[4 * k + 3].mutable_data_ptr<T>() : nullptr);
+    }
+    sink.chunks.resize(K * B * nb);
+    auto [ids, zbuf] = raster_impl(pos, faces, H, W, cull, bits, empty({0}, kFloat64), empty({0}, kInt64), false, K,
                                    &sink, keep_depth);
     if (ids.numel() == 0 && B * H * W > 0) {  // a non-finite position or a bad index: the caller names it
       out = {ids, zbuf};
       return;
     }
-    std::vector<int64_t> at(B * nb + 1, 0);
-    for (int64_t c = 0; c < B * nb; ++c) at[c + 1] = at[c] + sink.chunks[c].n;
-    const int64_t N = at[B * nb];
-    Tensor idx = empty({N}, kInt64), bc = empty({N, 3}, opt);
-    Tensor dxc = derivatives ? empty({N, 3}, opt) : none(), dyc = derivatives ? empty({N, 3}, opt) : none();
-    int64_t* pidx = idx.mutable_data_ptr<int64_t>();
-    T* pb = bc.mutable_data_ptr<T>();
-    T* pdx = derivatives ? dxc.mutable_data_ptr<T>() : nullptr;
-    T* pdy = derivatives ? dyc.mutable_data_ptr<T>() : nullptr;
-    parallel_for(0, B * nb, 8, [&](int64_t lo, int64_t hi) {
-      for (int64_t c = lo; c < hi; ++c) {
-        const auto& ch = sink.chunks[c];
-        if (!ch.n) continue;
-        std::memcpy(pidx + at[c], ch.idx.get(), sizeof(int64_t) * ch.n);
-        std::memcpy(pb + 3 * at[c], ch.b.get(), sizeof(T) * 3 * ch.n);
-        if (derivatives) {
-          std::memcpy(pdx + 3 * at[c], ch.dx.get(), sizeof(T) * 3 * ch.n);
-          std::memcpy(pdy + 3 * at[c], ch.dy.get(), sizeof(T) * 3 * ch.n);
+    out = {ids, zbuf};
+    const int64_t nc = B * nb;
+    for (int64_t k = 0; k < K; ++k) {
+      const auto* chunks = sink.chunks.data() + k * nc;
+      std::vector<int64_t> at(nc + 1, 0);
+      for (int64_t c = 0; c < nc; ++c) at[c + 1] = at[c] + chunks[c].n;
+      const int64_t N = at[nc];
+      Tensor idx = empty({N}, kInt64), bc = empty({N, 3}, opt);
+      Tensor dxc = derivatives ? empty({N, 3}, opt) : none(), dyc = derivatives ? empty({N, 3}, opt) : none();
+      int64_t* pidx = idx.mutable_data_ptr<int64_t>();
+      T* pb = bc.mutable_data_ptr<T>();
+      T* pdx = derivatives ? dxc.mutable_data_ptr<T>() : nullptr;
+      T* pdy = derivatives ? dyc.mutable_data_ptr<T>() : nullptr;
+      parallel_for(0, nc, 8, [&](int64_t lo, int64_t hi) {
+        for (int64_t c = lo; c < hi; ++c) {
+          const auto& ch = chunks[c];
+          if (!ch.n) continue;
+          std::memcpy(pidx + at[c], ch.idx.get(), sizeof(int64_t) * ch.n);
+          std::memcpy(pb + 3 * at[c], ch.b.get(), sizeof(T) * 3 * ch.n);
+          if (derivatives) {
+            std::memcpy(pdx + 3 * at[c], ch.dx.get(), sizeof(T) * 3 * ch.n);
+            std::memcpy(pdy + 3 * at[c], ch.dy.get(), sizeof(T) * 3 * ch.n);
+          }
         }
-      }
-    });
-    out = {ids, zbuf, idx, bc, dxc, dyc, bary, depth, bdx, bdy};
+      });
+      for (const Tensor& t : {idx, bc, dxc, dyc}) out.push_back(t);
+      for (int d = 0; d < 4; ++d) out.push_back(dense[4 * k + d]);
+    }
   });
   return out;
 }
