@@ -148,6 +148,10 @@ class Kernel:
                          derivatives: bool = True):
         return self._ops.raster_fragments(pos, faces, tri_id, packed, offset, derivatives)
 
+    def raster_fused(self, pos, faces, H, W, cull, bits, *, derivatives: bool = True, keep_depth: bool = False,
+                     layers: int = 1):
+        return self._ops.raster_fused(pos, faces, H, W, cull, bits, derivatives, keep_depth, layers)
+
     def raster_fragments_backward(self, pos, faces, tri_id, idx, grads, packed: bool) -> Tensor:
         return self._ops.raster_fragments_backward(pos, faces, tri_id, idx, grads, packed)
 
@@ -367,6 +371,20 @@ def _register_fakes() -> None:
             return [idx, like(pos, B, H, W, 4), deriv(B, H, W, 4)]
         return [idx, like(pos, N, 3), deriv(N, 3), deriv(N, 3), like(pos, B, H, W, 3), like(pos, B, H, W),
                 deriv(B, H, W, 3), deriv(B, H, W, 3)]
+
+    @register_fake("difftex::raster_fused")
+    def _(pos, faces, H, W, cull, bits, derivatives, keep_depth, layers):
+        B = pos.shape[0]
+        n = B * H * W
+
+        def deriv(*shape):  # empty [0] where the derivatives are not asked for
+            return like(pos, *shape) if derivatives else like(pos, 0)
+        out = [like(pos, n * layers, dtype=torch.int64), like(pos, n if keep_depth else 0, dtype=torch.float64)]
+        for _ in range(layers):
+            N = get_ctx().new_dynamic_size()
+            out += [like(pos, N, dtype=torch.int64), like(pos, N, 3), deriv(N, 3), deriv(N, 3), like(pos, B, H, W, 3),
+                    like(pos, B, H, W), deriv(B, H, W, 3), deriv(B, H, W, 3)]
+        return out
 
     @register_fake("difftex::raster_fragments_backward")
     def _(pos, faces, tri_id, idx, grads, packed):

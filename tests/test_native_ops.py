@@ -17,9 +17,9 @@ from difftex import _native as native
 pytestmark = pytest.mark.skipif(native.load() is None, reason="native kernels not built")
 
 ALL_OPS = ("taps_forward", "taps_backward", "tap_front", "box2", "box2_adjoint", "ewa_forward", "ewa_backward",
-           "sample_forward", "sample_backward", "raster", "raster_fragments", "raster_fragments_backward",
-           "cube_front", "cube_front_backward", "cube_read", "cube_read_backward", "sat_forward", "sat_backward",
-           "ripmap_build", "ripmap_adjoint", "ripmap_read", "ripmap_read_backward")
+           "sample_forward", "sample_backward", "raster", "raster_fragments", "raster_fused",
+           "raster_fragments_backward", "cube_front", "cube_front_backward", "cube_read", "cube_read_backward",
+           "sat_forward", "sat_backward", "ripmap_build", "ripmap_adjoint", "ripmap_read", "ripmap_read_backward")
 
 
 class _Recorder:
@@ -73,6 +73,7 @@ def recorded():
         faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
         frags = difftex.rasterize(pos, faces, (12, 10))
         (frags.bary.sum() + frags.bary_dx.sum()).backward()
+        difftex.rasterize(pos.detach(), faces, (12, 10), derivatives=False)
         difftex.depth_peel(pos.detach(), faces, (12, 10), 2)
         from difftex import nvdiffrast as dr
         dr.rasterize(dr.RasterizeCudaContext(), pos.detach()[None].float(), faces.int(), (12, 10))

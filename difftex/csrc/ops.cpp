@@ -138,6 +138,11 @@ std::vector<Tensor> raster_fragments_op(Tensor pos, Tensor faces, Tensor tri_id,
   return raster_fragments(pos, faces, tri_id, packed, offset, derivatives);
 }
 
+std::vector<Tensor> raster_fused_op(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull, int64_t bits,
+                                    bool derivatives, bool keep_depth, int64_t layers) {
+  return raster_fused(pos, faces, H, W, cull, bits, derivatives, keep_depth, layers);
+}
+
 Tensor raster_fragments_backward_op(Tensor pos, Tensor faces, Tensor tri_id, Tensor idx, OptTensors grads,
                                     bool packed) {
   std::vector<Tensor> g;
@@ -248,6 +253,8 @@ STABLE_TORCH_LIBRARY(difftex, m) {
         "bool count, int layers) -> (Tensor, Tensor)");
   m.def("raster_fragments(Tensor pos, Tensor faces, Tensor tri_id, bool packed, int offset, bool derivatives) "
         "-> Tensor[]");
+  m.def("raster_fused(Tensor pos, Tensor faces, int H, int W, bool cull, int bits, bool derivatives, "
+        "bool keep_depth, int layers) -> Tensor[]");
   m.def("raster_fragments_backward(Tensor pos, Tensor faces, Tensor tri_id, Tensor idx, Tensor?[] grads, "
         "bool packed) -> Tensor");
   m.def("cube_front(Tensor dirs, Tensor dx, Tensor dy, Tensor bias, float bias0, int S, int levels, float band) "
@@ -283,6 +290,7 @@ STABLE_TORCH_LIBRARY_IMPL(difftex, CPU, m) {
   m.impl("sample_backward", TORCH_BOX(&sample_backward_op));
   m.impl("raster", TORCH_BOX(&raster_op));
   m.impl("raster_fragments", TORCH_BOX(&raster_fragments_op));
+  m.impl("raster_fused", TORCH_BOX(&raster_fused_op));
   m.impl("raster_fragments_backward", TORCH_BOX(&raster_fragments_backward_op));
   m.impl("cube_front", TORCH_BOX(&cube_front_op));
   m.impl("cube_front_backward", TORCH_BOX(&cube_front_backward_op));

@@ -816,44 +816,113 @@ class _NativeFragments(torch.autograd.Function):
     @staticmethod
     def backward(ctx, _gidx: None, *grads: Optional[Tensor]):
         pos, faces, tri_id, idx = ctx.saved_tensors
-        none = (None,) * 7
-        # The empty derivative outputs of a call without derivatives take no gradient.
-        grads = tuple(None if g is None or g.numel() == 0 else g for g in grads)
-        if all(g is None for g in grads):
-            return none
-        if not (torch.is_grad_enabled() and pos.requires_grad):
-            # First order: the kernel's hand-written adjoint of the same
-            # formula, reading the gradients where they are.
-            empty = pos.new_empty(0)
-            return (ctx.mod.raster_fragments_backward(pos.detach(), faces, tri_id, idx,
-                                                      [empty if g is None else g for g in grads], ctx.packed),
-                    *none[1:])
-        # Under create_graph: the torch formula differentiated from pos itself.
-        B, H, W = tri_id.shape
-        if ctx.packed:
-            g_rast, g_db = (_gather_rows(g, idx, 4) for g in grads)
-            zero = idx.new_zeros(idx.shape, dtype=pos.dtype)
-            gb = None if g_rast is None else torch.stack([g_rast[:, 0], g_rast[:, 1], zero], 1)
-            gdx = None if g_db is None else torch.stack([g_db[:, 0], g_db[:, 2], zero], 1)
-            gdy = None if g_db is None else torch.stack([g_db[:, 1], g_db[:, 3], zero], 1)
-            gz = None
-        else:
-            gbc, gdxc, gdyc, gb_d, gz_d, gdx_d, gdy_d = grads
+        return (_fragments_grad(ctx.mod, ctx.packed, pos, faces, tri_id, idx, grads),) + (None,) * 6
 
-            def both(compact: Optional[Tensor], dense: Optional[Tensor]) -> Optional[Tensor]:
-                dense = _gather_rows(dense, idx, 3)
-                return dense if compact is None else (compact if dense is None else compact + dense)
 
-            gb, gdx, gdy = both(gbc, gb_d), both(gdxc, gdx_d), both(gdyc, gdy_d)
-            gz = _gather_rows(gz_d, idx, 1)
-            gz = None if gz is None else gz[:, 0]
-        pairs = [(k, g) for k, g in enumerate((gb, gz, gdx, gdy)) if g is not None]
-        if not pairs:
-            return none
-        with torch.enable_grad():
-            outs = _bary_at(*_pixels(pos, faces, tri_id, idx), W, H)
-            (g,) = torch.autograd.grad([outs[k] for k, _ in pairs], (pos,), [g for _, g in pairs], create_graph=True)
-        return (g, *none[1:])
+def _fragments_grad(mod, packed: bool, pos: Tensor, faces: Tensor, tri_id: Tensor, idx: Tensor,
+                    grads: Sequence[Optional[Tensor]]) -> Optional[Tensor]:
+    """The gradient of pos from the output gradients of one layer's fragments (:class:`_NativeFragments`' outputs
+    after idx), or None."""
+    # The empty derivative outputs of a call without derivatives take no gradient.
+    grads = tuple(None if g is None or g.numel() == 0 else g for g in grads)
+    if all(g is None for g in grads):
+        return None
+    if not (torch.is_grad_enabled() and pos.requires_grad):
+        # First order: the kernel's hand-written adjoint of the same
+        # formula, reading the gradients where they are.
+        empty = pos.new_empty(0)
+        return mod.raster_fragments_backward(pos.detach(), faces, tri_id, idx,
+                                             [empty if g is None else g for g in grads], packed)
+    # Under create_graph: the torch formula differentiated from pos itself.
+    B, H, W = tri_id.shape
+    if packed:
+        g_rast, g_db = (_gather_rows(g, idx, 4) for g in grads)
+        zero = idx.new_zeros(idx.shape, dtype=pos.dtype)
+        gb = None if g_rast is None else torch.stack([g_rast[:, 0], g_rast[:, 1], zero], 1)
+        gdx = None if g_db is None else torch.stack([g_db[:, 0], g_db[:, 2], zero], 1)
+        gdy = None if g_db is None else torch.stack([g_db[:, 1], g_db[:, 3], zero], 1)
+        gz = None
+    else:
+        gbc, gdxc, gdyc, gb_d, gz_d, gdx_d, gdy_d = grads
+
+        def both(compact: Optional[Tensor], dense: Optional[Tensor]) -> Optional[Tensor]:
+            dense = _gather_rows(dense, idx, 3)
+            return dense if compact is None else (compact if dense is None else compact + dense)
+
+        gb, gdx, gdy = both(gbc, gb_d), both(gdxc, gdx_d), both(gdyc, gdy_d)
+        gz = _gather_rows(gz_d, idx, 1)
+        gz = None if gz is None else gz[:, 0]
+    pairs = [(k, g) for k, g in enumerate((gb, gz, gdx, gdy)) if g is not None]
+    if not pairs:
+        return None
+    with torch.enable_grad():
+        outs = _bary_at(*_pixels(pos, faces, tri_id, idx), W, H)
+        (g,) = torch.autograd.grad([outs[k] for k, _ in pairs], (pos,), [g for _, g in pairs], create_graph=True)
+    return g
+
+
+class _Rejected(Exception):
+    """The native kernel found a non-finite position or an index out of range (the caller's checks name it)."""
+
+
+class _NativeRaster(torch.autograd.Function):
+    """Visibility and the differentiable pass of ``layers`` layers in one native call (``raster_fused``: each band
+    of rows gets its fragments right after its z-buffer, while its pixels and triangles are in cache).
+
+    Outputs tri_id [layers, B, H, W], then per layer :class:`_NativeFragments`' unpacked outputs; the same values
+    as the separate passes, and each layer's backward as theirs (tri_id and idx take no gradient).
+    """
+
+    @staticmethod
+    def forward(ctx, pos: Tensor, faces: Tensor, spec: tuple[int, int, bool, int, int], mod, derivatives: bool):
+        H, W, cull, bits, layers = spec
+        out = mod.raster_fused(pos.detach(), faces, H, W, cull, bits, derivatives=derivatives, layers=layers)
+        if len(out) == 2:
+            raise _Rejected()
+        tri_id = out[0].view(layers, pos.shape[0], H, W)
+        frags = out[2:]
+        idxs = frags[0::8]
+        ctx.save_for_backward(pos, faces, tri_id, *idxs)
+        ctx.mod = mod
+        ctx.mark_non_differentiable(tri_id, *idxs)
+        ctx.set_materialize_grads(False)
+        return (tri_id, *frags)
+
+    @staticmethod
+    def backward(ctx, _gid: None, *grads: Optional[Tensor]):
+        pos, faces, tri_id, *idxs = ctx.saved_tensors
+        total = None
+        for k, idx in enumerate(idxs):
+            g = _fragments_grad(ctx.mod, False, pos, faces, tri_id[k], idx, grads[8 * k + 1:8 * k + 8])
+            if g is not None:
+                total = g if total is None else total + g
+        return total, None, None, None, None
+
+
+def _rasterize_fused(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_backfaces: bool,
+                     derivatives: bool, mod, layers: int = 1) -> list[Fragments]:
+    """:func:`rasterize` (one layer) or :func:`depth_peel` on the native kernel in one call (the checks as
+    :func:`visible_layers` makes them)."""
+    pos = _check_pos(pos, finite=False)
+    faces = check_index("faces", faces, pos.shape[1], "number of vertices", pos.device, check_range=False)
+    H, W = _check_resolution(resolution)
+    _check_memory(pos.shape[0], H, W, pos.dtype)
+    try:
+        tri_id, *out = _NativeRaster.apply(pos, faces.contiguous(), (H, W, cull_backfaces, _subpixel_bits(H, W), layers),
+                                           mod, derivatives)
+    except _Rejected:
+        _check_pos(pos)
+        check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
+        raise RuntimeError("rasterize: the native kernel rejected its input") from None  # not reached
+    result = []
+    for k in range(layers):
+        idx, bary_c, dx_c, dy_c, bary, depth, bary_dx, bary_dy = out[8 * k:8 * k + 8]
+        if not derivatives:
+            dx_c = dy_c = bary_dx = bary_dy = None
+        frags = Fragments(tri_id=tri_id[k], bary=bary, depth=depth, bary_dx=bary_dx, bary_dy=bary_dy)
+        object.__setattr__(frags, "_compact", (idx, bary_c, dx_c, dy_c))
+        result.append(frags)
+    return result
 
 
 def rasterize(
@@ -917,6 +986,13 @@ def rasterize(
     """
     if not isinstance(derivatives, bool):
         raise TypeError(f"rasterize: derivatives must be a bool, got {type(derivatives).__name__}")
+    from .. import _native as native
+
+    # One layer on the native kernel: visibility and fragments in one pass, no depth buffer kept (the floor
+    # of depth peeling's next layer, which rasterize does not peel).
+    mod = native.kernel(pos) if isinstance(pos, Tensor) else None
+    if mod is not None:
+        return _rasterize_fused(pos, faces, resolution, cull_backfaces, derivatives, mod)[0]
     return next(visible_layers(pos, faces, resolution, cull_backfaces, functools.partial(
         fragments_of, derivatives=derivatives)))
 
@@ -928,6 +1004,7 @@ def depth_peel(
     layers: int,
     *,
     cull_backfaces: bool = False,
+    derivatives: bool = True,
 ) -> list[Fragments]:
     """Depth peeling: the first ``layers`` surfaces along every pixel's ray, nearest first.
 
@@ -938,11 +1015,13 @@ def depth_peel(
     (``tri_id = -1``) in layer k. Each pass keeps the previous layer's float64
     depth and id per pixel as a floor (the torch path; the native kernel keeps
     each pixel's ``layers`` nearest fragments in one pass, a k-buffer, with
-    the same result); every layer costs about one rasterization, less with
-    the kernel.
+    the same result, and every layer's fragments in that pass too); every layer
+    costs about one rasterization, less with the kernel.
 
     Args:
-        pos, faces, resolution, cull_backfaces: as for :func:`rasterize`.
+        pos, faces, resolution, cull_backfaces, derivatives: as for
+            :func:`rasterize` (``derivatives=False``: every layer's bary_dx
+            and bary_dy are None and not computed).
         layers: number of layers (>= 1).
 
     Returns:
@@ -957,19 +1036,32 @@ def depth_peel(
         raise TypeError(f"depth_peel: layers must be an int, got {type(layers).__name__}")
     if layers < 1:
         raise ValueError(f"depth_peel: layers must be >= 1, got {layers}")
-    return list(itertools.islice(
-        visible_layers(pos, faces, resolution, cull_backfaces, fragments_of, at_once=layers), layers))
+    if not isinstance(derivatives, bool):
+        raise TypeError(f"depth_peel: derivatives must be a bool, got {type(derivatives).__name__}")
+    from .. import _native as native
+
+    # On the native kernel: the k-buffer and every layer's fragments in one pass.
+    mod = native.kernel(pos) if isinstance(pos, Tensor) else None
+    if mod is not None:
+        return _rasterize_fused(pos, faces, resolution, cull_backfaces, derivatives, mod, layers)
+    return list(itertools.islice(visible_layers(pos, faces, resolution, cull_backfaces, functools.partial(
+        fragments_of, derivatives=derivatives), at_once=layers), layers))
 
 
-def peel(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cull_backfaces: bool = False) -> Iterator[Fragments]:
+def peel(pos: Tensor, faces: Tensor, resolution: Sequence[int], *, cull_backfaces: bool = False,
+         derivatives: bool = True) -> Iterator[Fragments]:
     """Depth layers one at a time, nearest first, without end: :func:`depth_peel` as a lazy iterator.
 
     Each ``next()`` costs about one rasterization (the previous layer's
     float64 depth and id per pixel are kept as the floor); past the last
     surface every layer is background. Arguments, gradients and errors as
-    :func:`depth_peel` (the errors are raised at the first ``next()``).
+    :func:`depth_peel` (the errors are raised at the first ``next()``, but a
+    ``derivatives`` that is not a bool at once).
     """
-    return visible_layers(pos, faces, resolution, cull_backfaces, fragments_of)
+    if not isinstance(derivatives, bool):
+        raise TypeError(f"peel: derivatives must be a bool, got {type(derivatives).__name__}")
+    return visible_layers(pos, faces, resolution, cull_backfaces, functools.partial(
+        fragments_of, derivatives=derivatives))
 
 
 def visible_layers(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull_backfaces: bool,

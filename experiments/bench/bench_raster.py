@@ -35,15 +35,19 @@ the bytes of its dense outputs (tri_id int64, bary, depth and, unless
 copies for interpolate are written on top and not counted); Mitsuba's
 (t, prim_uv, prim_index: 16 bytes a ray) likewise. Scenes: spot at 512^2 and
 1024^2, icosphere(8) at 512^2 (``--small``: spot and icosphere(4) at 128^2,
-a check that it runs). rasterize's two paths and the peers are timed in
-the same rounds, shuffled, with a pause before each call
-(difftex.testing.timing); depth_peel against rasterize in rounds of their
-own (see run_peers: what ran before decides how many page faults a call
-pays). It prints median and interquartile range, and per-round ratios. The peers need the
+a check that it runs). The main comparison is the steady state of the speed
+issues (difftex.testing.time_blocks): ``--blocks`` rounds, each a block of 8
+back-to-back calls of every function (shuffled order, a pause before each
+block, the first 2 calls untimed: a render or training loop's time, every
+library's threads awake); depth_peel against rasterize in blocks of their
+own (what ran before decides how many page faults a call pays). Ratios are
+the median and quartiles [q1-q3] of the per-call ratios. The first call
+after a pause (difftex.testing.time_interleaved, ``--reps`` rounds; the
+torch path is timed only there) is a second table. The peers need the
 optional ``peers`` extra (``pip install difftex[peers]``); without it they
-are skipped with a message.
+are skipped with a message. About 2-3 minutes on 2 cores.
 
-    python -m experiments.bench.bench_raster --peers [--small] [--reps 15] [--threads 1,2] [--out docs/bench_raster_peers.md]
+    python -m experiments.bench.bench_raster --peers [--small] [--blocks 6] [--reps 9] [--threads 1,2] [--out docs/bench_raster_peers.md]
 """
 from __future__ import annotations
 
@@ -271,11 +275,20 @@ def _out_bytes(fr) -> int:
                if t is not None)
 
 
-def run_peers(kind: str, param: int, res: int, reps: int, pause: float, threads: int = 0) -> dict:
+def _ratio(a, b) -> dict:
+    """Median and quartiles of the per-call ratios a / b (the k-th timed call of each, same harness call)."""
+    import statistics
+
+    r = [x / y for x, y in zip(a.times_ms, b.times_ms)]
+    q = statistics.quantiles(r, n=4, method="inclusive") if len(r) > 1 else [r[0]] * 3
+    return {"median": statistics.median(r), "q1": q[0], "q3": q[2]}
+
+
+def run_peers(kind: str, param: int, res: int, reps: int, pause: float, threads: int = 0, blocks: int = 6) -> dict:
     import torch
 
     import difftex
-    from difftex.testing import time_interleaved
+    from difftex.testing import time_blocks, time_interleaved
 
     if threads:
         torch.set_num_threads(threads)
@@ -305,44 +318,55 @@ def run_peers(kind: str, param: int, res: int, reps: int, pause: float, threads:
         with difftex.backend("auto"):
             return difftex.depth_peel(pos, F, (H, W), 4)
 
-    fns = {"rasterize (native)": native, "rasterize (native, no derivs)": native_lean,
-           "rasterize (torch)": torch_path}
+    fns = {"rasterize (native)": native, "rasterize (native, no derivs)": native_lean}
     peers, why = _mitsuba_peers(V, F, mvp, res)
     out: dict = {"scene": kind, "param": param, "tris": int(F.shape[0]), "res": res,
-                 "threads": torch.get_num_threads(), "skipped": why}
+                 "threads": torch.get_num_threads(), "skipped": why, "blocks": blocks}
     if peers is not None:
         ids = native().tri_id[0]
         out["mitsuba_id_agreement"] = float((peers.pop("_ids")() == ids).double().mean())
         out["peer_info"] = peers.pop("_info")
         fns.update(peers)
     names = list(fns)
-    t = time_interleaved([fns[n] for n in names], reps, pause=pause, shuffle=True)
-    # Depth peeling against one layer in rounds of their own: both allocate their dense outputs afresh (about
-    # 40 MB a layer at 1024^2), and after the torch path's or Mitsuba's allocations the allocator has often
-    # handed that memory back to the system, so a call pays its page faults again (measured on spot at 1024^2:
-    # 0 faults and 37-45 ms a peel in rounds of their own, 56,000 faults and 128-188 ms after other work).
-    peel_t, one_t = time_interleaved([peel4, native], reps, warmup=2, pause=pause, shuffle=True)
-    names.append("depth_peel 4 (native)")
-    t = list(t) + [peel_t]
-    out["times"] = {n: {"median": x.median, "iqr": x.spread, "min": x.min} for n, x in zip(names, t)}
+    # The main comparison: steady state (blocks of back-to-back calls, interleaved block by block).
+    t = time_blocks([fns[n] for n in names], blocks, calls=8, skip=2, pause=pause)
+    # Depth peeling against one layer in blocks of their own: both allocate their dense outputs afresh (about
+    # 40 MB a layer at 1024^2), and after Mitsuba's allocations the allocator has often handed that memory
+    # back to the system, so a call pays its page faults again.
+    peel_t, one_t = time_blocks([peel4, native], blocks, calls=8, skip=2, pause=pause)
     by = dict(zip(names, t))
-    ratios = {"depth_peel 4 / rasterize": peel_t.ratio_to(one_t),
-              "torch path / native": by["rasterize (torch)"].ratio_to(by["rasterize (native)"]),
-              "no derivs / native": by["rasterize (native, no derivs)"].ratio_to(by["rasterize (native)"])}
+    by["depth_peel 4 (native)"] = peel_t
+    out["times"] = {n: {"median": x.median, "iqr": x.spread, "min": x.min} for n, x in by.items()}
+    ratios = {"depth_peel 4 / rasterize": _ratio(peel_t, one_t),
+              "no derivs / native": _ratio(by["rasterize (native, no derivs)"], by["rasterize (native)"])}
     full_b, lean_b = _out_bytes(native()), _out_bytes(native_lean())
     out["bandwidth_gbs"] = {"rasterize (native)": full_b / by["rasterize (native)"].median / 1e6,
                             "rasterize (native, no derivs)": lean_b / by["rasterize (native, no derivs)"].median / 1e6}
     out["out_bytes"] = {"rasterize (native)": full_b, "rasterize (native, no derivs)": lean_b}
     if peers is not None:
         coh, inc = by["mitsuba coherent (prebuilt BVH)"], by["mitsuba incoherent (prebuilt BVH)"]
-        fast = "coherent" if coh.median <= inc.median else "incoherent"
-        out["mitsuba_faster"] = fast
-        ratios["incoherent / coherent (mitsuba)"] = inc.ratio_to(coh)
-        ratios["native / mitsuba prebuilt (faster)"] = by["rasterize (native)"].ratio_to(coh if fast == "coherent"
-                                                                                        else inc)
-        ratios["native / mitsuba rebuilt"] = by["rasterize (native)"].ratio_to(by["mitsuba coherent (BVH rebuilt)"])
+        out["mitsuba_faster"] = "coherent" if coh.median <= inc.median else "incoherent"
+        ratios["incoherent / coherent (mitsuba)"] = _ratio(inc, coh)
+        ratios["native / mitsuba coherent"] = _ratio(by["rasterize (native)"], coh)
+        ratios["no derivs / mitsuba coherent"] = _ratio(by["rasterize (native, no derivs)"], coh)
+        ratios["native / mitsuba rebuilt"] = _ratio(by["rasterize (native)"], by["mitsuba coherent (BVH rebuilt)"])
         out["bandwidth_gbs"]["mitsuba coherent (prebuilt BVH)"] = 16 * H * W / coh.median / 1e6
     out["ratios"] = ratios
+    # The first call after a pause (time_interleaved: other libraries' threads asleep, caches cold), apart;
+    # the torch path only here (one call of it takes as long as a block of the others).
+    first = {"rasterize (native)": native, "rasterize (native, no derivs)": native_lean,
+             "rasterize (torch)": torch_path}
+    if peers is not None:
+        first["mitsuba coherent (prebuilt BVH)"] = peers["mitsuba coherent (prebuilt BVH)"]
+    fnames = list(first)
+    ft = dict(zip(fnames, time_interleaved([first[n] for n in fnames], reps, pause=pause, shuffle=True)))
+    out["first_call"] = {n: {"median": x.median, "iqr": x.spread} for n, x in ft.items()}
+    fr = {"torch path / native": _ratio(ft["rasterize (torch)"], ft["rasterize (native)"])}
+    if peers is not None:
+        fr["native / mitsuba coherent"] = _ratio(ft["rasterize (native)"], ft["mitsuba coherent (prebuilt BVH)"])
+        fr["no derivs / mitsuba coherent"] = _ratio(ft["rasterize (native, no derivs)"],
+                                                    ft["mitsuba coherent (prebuilt BVH)"])
+    out["first_call_ratios"] = fr
     return out
 
 
@@ -357,55 +381,83 @@ def _run_scene(flags: list[str]) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def _rq(x: dict) -> str:
+    return f"{x['median']:.2f} [{x['q1']:.2f}-{x['q3']:.2f}]"
+
+
 def peers_main(args) -> None:
     rows = []
     thread_counts = [int(t) for t in args.threads.split(",")]
     for kind, param, res in (PEER_SCENES_SMALL if args.small else PEER_SCENES):
         for nt in thread_counts:
             r = _run_scene(["--reps", str(args.reps), "--pause", str(args.pause), "--threads", str(nt),
-                            "--peer-one", f"{kind},{param},{res}"])
+                            "--blocks", str(args.blocks), "--peer-one", f"{kind},{param},{res}"])
             rows.append(r)
             if r["skipped"]:
                 print(f"peers skipped: {r['skipped']}")
             name = "spot" if kind == "spot" else f"icosphere({param})"
-            print(f"{name} {r['tris']:,} tris {res}^2, {r['threads']} thread(s):")
+            print(f"{name} {r['tris']:,} tris {res}^2, {r['threads']} thread(s), steady state:")
             for n, x in r["times"].items():
                 print(f"  {n:>34}: {x['median']:8.2f} ms (IQR {x['iqr']:.2f}, min {x['min']:.2f})")
             for n, x in r["ratios"].items():
-                print(f"  {n:>34}: {x:.2f}x")
+                print(f"  {n:>34}: {_rq(x)}x")
             for n, x in r["bandwidth_gbs"].items():
                 nb = r["out_bytes"].get(n)
                 print(f"  {n:>34}: {x:.2f} GB/s of output" + (f" ({nb / 2**20:.1f} MiB a call)" if nb else
                                                                  " (t, prim_uv, prim_index: 16 B a ray)"))
+            print("  first call after a pause:")
+            for n, x in r["first_call"].items():
+                print(f"  {n:>34}: {x['median']:8.2f} ms (IQR {x['iqr']:.2f})")
+            for n, x in r["first_call_ratios"].items():
+                print(f"  {n:>34}: {_rq(x)}x")
             if "mitsuba_id_agreement" in r:
                 print(f"  triangle ids equal to Mitsuba's on {r['mitsuba_id_agreement']:.4%} of pixels")
             if "mitsuba_faster" in r:
-                print(f"  Mitsuba's faster prebuilt variant: {r['mitsuba_faster']} (compared against)")
+                print(f"  Mitsuba's faster prebuilt variant: {r['mitsuba_faster']}")
     import platform
 
+    def cell(t, n):
+        return f"{t[n]['median']:.2f} ({t[n]['iqr']:.2f})" if n in t else "-"
+
+    def ratio(q, n):
+        return _rq(q[n]) if n in q else "-"
+
+    def name_of(r):
+        return "spot" if r["scene"] == "spot" else f"icosphere({r['param']})"
+
     lines = [f"CPU ({os.cpu_count()} cores, {platform.machine()}); {rows[0].get('peer_info', 'peers skipped')}; "
-             f"float32; median (IQR) of {args.reps} shuffled rounds, {args.pause * 1e3:.0f} ms pause before each "
-             "call (depth_peel against rasterize in rounds of their own); ratios are medians of per-round ratios; "
-             "native / prebuilt against the faster of Mitsuba's coherent and incoherent casts; GB/s: rasterize's "
-             "dense outputs (tri_id, bary, depth, bary_dx, bary_dy) over its median time.",
-             "", "| scene | image | threads | rasterize native ms | no derivs ms | torch path ms | depth_peel 4 ms | "
-             "Mitsuba coherent ms | Mitsuba incoherent ms | Mitsuba rebuilt ms | native / prebuilt | "
-             "native / rebuilt | native GB/s | peel 4 / 1 |",
+             f"float32. Steady state (difftex.testing.time_blocks): {args.blocks} rounds, each a block of 8 "
+             f"back-to-back calls of every function in a shuffled order after a {args.pause * 1e3:.0f} ms pause, "
+             "the first 2 calls of a block untimed; median (IQR) ms over the timed calls; ratios: median "
+             "[q1-q3] of the per-call ratios (k-th timed call against k-th); depth_peel against rasterize in "
+             "blocks of their own; GB/s: rasterize's dense outputs (tri_id, bary, depth, bary_dx, bary_dy) over "
+             "its median time.",
+             "", "| scene | image | threads | rasterize native ms | no derivs ms | depth_peel 4 ms | "
+             "Mitsuba coherent ms | Mitsuba incoherent ms | Mitsuba rebuilt ms | native / coherent | "
+             "no derivs / coherent | native / rebuilt | native GB/s | peel 4 / 1 |",
              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in rows:
         t, q = r["times"], r["ratios"]
-
-        def cell(n):
-            return f"{t[n]['median']:.1f} ({t[n]['iqr']:.1f})" if n in t else "-"
-        name = "spot" if r["scene"] == "spot" else f"icosphere({r['param']})"
-        lines.append(f"| {name} ({r['tris']:,}) | {r['res']}^2 | {r['threads']} | {cell('rasterize (native)')} | "
-                     f"{cell('rasterize (native, no derivs)')} | "
-                     f"{cell('rasterize (torch)')} | {cell('depth_peel 4 (native)')} | "
-                     f"{cell('mitsuba coherent (prebuilt BVH)')} | {cell('mitsuba incoherent (prebuilt BVH)')} | "
-                     f"{cell('mitsuba coherent (BVH rebuilt)')} | "
-                     f"{q.get('native / mitsuba prebuilt (faster)', float('nan')):.2f} | "
-                     f"{q.get('native / mitsuba rebuilt', float('nan')):.2f} | "
-                     f"{r['bandwidth_gbs']['rasterize (native)']:.2f} | {q['depth_peel 4 / rasterize']:.2f} |")
+        lines.append(f"| {name_of(r)} ({r['tris']:,}) | {r['res']}^2 | {r['threads']} | "
+                     f"{cell(t, 'rasterize (native)')} | {cell(t, 'rasterize (native, no derivs)')} | "
+                     f"{cell(t, 'depth_peel 4 (native)')} | {cell(t, 'mitsuba coherent (prebuilt BVH)')} | "
+                     f"{cell(t, 'mitsuba incoherent (prebuilt BVH)')} | {cell(t, 'mitsuba coherent (BVH rebuilt)')} | "
+                     f"{ratio(q, 'native / mitsuba coherent')} | {ratio(q, 'no derivs / mitsuba coherent')} | "
+                     f"{ratio(q, 'native / mitsuba rebuilt')} | "
+                     f"{r['bandwidth_gbs']['rasterize (native)']:.2f} | {ratio(q, 'depth_peel 4 / rasterize')} |")
+    lines += ["", f"First call after a {args.pause * 1e3:.0f} ms pause (difftex.testing.time_interleaved, "
+              f"{args.reps} shuffled rounds; other libraries' threads asleep, caches cold): median (IQR) ms, "
+              "ratios median [q1-q3] of per-round ratios.", "",
+              "| scene | image | threads | rasterize native ms | no derivs ms | torch path ms | Mitsuba coherent ms | "
+              "native / coherent | no derivs / coherent | torch path / native |",
+              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        t, q = r["first_call"], r["first_call_ratios"]
+        lines.append(f"| {name_of(r)} ({r['tris']:,}) | {r['res']}^2 | {r['threads']} | "
+                     f"{cell(t, 'rasterize (native)')} | {cell(t, 'rasterize (native, no derivs)')} | "
+                     f"{cell(t, 'rasterize (torch)')} | {cell(t, 'mitsuba coherent (prebuilt BVH)')} | "
+                     f"{ratio(q, 'native / mitsuba coherent')} | {ratio(q, 'no derivs / mitsuba coherent')} | "
+                     f"{ratio(q, 'torch path / native')} |")
     table = "\n".join(lines)
     print()
     print(table)
@@ -424,12 +476,14 @@ def main() -> None:
     ap.add_argument("--small", action="store_true", help="with --peers: small scenes only (a check that it runs)")
     ap.add_argument("--pause", type=float, default=0.05, help="with --peers: seconds slept before each timed call")
     ap.add_argument("--threads", default="1,2", help="with --peers: thread counts, comma-separated (torch and Dr.Jit)")
+    ap.add_argument("--blocks", type=int, default=6, help="with --peers: steady-state rounds (blocks of 8 calls)")
     ap.add_argument("--peer-one", default=None, help=argparse.SUPPRESS)  # internal: kind,param,res
     args = ap.parse_args()
 
     if args.peer_one:
         kind, param, res = args.peer_one.split(",")
-        print(json.dumps(run_peers(kind, int(param), int(res), args.reps, args.pause, int(args.threads))))
+        print(json.dumps(run_peers(kind, int(param), int(res), args.reps, args.pause, int(args.threads),
+                                   args.blocks)))
         return
     if args.peers:
         if args.device != "cpu":

@@ -3,6 +3,7 @@ triangle ids against a float64 ray cast, depth peeling."""
 
 from __future__ import annotations
 
+import functools
 import itertools
 
 import numpy as np
@@ -510,3 +511,134 @@ def test_eight_triangle_filter_matches_scalar_path(dtype, cull):
     ids, count = got[True][0], got[True][4]
     assert (ids[0] >= 0).sum() > H * W // 3 and (count >= 2).sum() > H * W // 4  # the spheres cover much, in layers
     assert ((ids >= 0) & (ids < 20480)).sum() > H * W // 3  # the dense sphere (sub-pixel triangles) shows
+
+
+@pytest.mark.parametrize("impl", IMPLS)
+def test_depth_peel_and_peel_without_derivatives(impl):
+    # derivatives=False leaves every layer's bary_dx / bary_dy None and changes nothing else, gradients included.
+    pos, faces = _quads([0.3, -0.2, 0.6, 0.3])
+    p1, p2, p3 = (pos.clone().requires_grad_(True) for _ in range(3))
+    with use_backend(impl):
+        full = depth_peel(p1, faces, (8, 16), 3)
+        lean = depth_peel(p2, faces, (8, 16), 3, derivatives=False)
+        lazy = list(itertools.islice(difftex.geometry.peel(p3, faces, (8, 16), derivatives=False), 3))
+    for f, a, b in zip(full, lean, lazy):
+        assert a.bary_dx is None and a.bary_dy is None and b.bary_dx is None and b.bary_dy is None
+        for name in ("tri_id", "bary", "depth"):
+            assert torch.equal(getattr(a, name), getattr(f, name)) and torch.equal(getattr(b, name), getattr(f, name))
+    for p, layers in ((p1, full), (p2, lean), (p3, lazy)):
+        sum(fr.bary.square().sum() + fr.depth.sum() for fr in layers).backward()
+    torch.testing.assert_close(p2.grad, p1.grad, rtol=0, atol=1e-15)
+    # peel's layers are separate autograd nodes: their gradients are summed in another order.
+    torch.testing.assert_close(p3.grad, p1.grad, rtol=1e-14, atol=1e-15)
+    with pytest.raises(TypeError, match="depth_peel: derivatives must be a bool"):
+        depth_peel(pos, faces, (4, 4), 2, derivatives=1)
+    with pytest.raises(TypeError, match="peel: derivatives must be a bool"):
+        difftex.geometry.peel(pos, faces, (4, 4), derivatives=None)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("cull", [False, True])
+def test_four_pixel_row_loop_matches_scalar_path(dtype, cull):
+    # The z-buffer's AVX2 row loop (raster.cpp exact_row_avx2): the same ids and float64 depths as the scalar
+    # loop and the torch path, on big triangles (spans solved per row), small ones (boxes tested per centre),
+    # odd widths (masked lanes past the last column) and coplanar overlaps (ties go to the lowest id).
+    from difftex.geometry.raster import _subpixel_bits, _visibility
+    from difftex import _native as native
+
+    kernel = native.load()
+    if kernel is None:
+        pytest.skip("the native kernel is unavailable")
+    gen = torch.Generator().manual_seed(5)
+    V, F = icosphere(3, dtype=torch.float64)
+    sphere = camera.transform(V, _camera(gen, 2.2, 50.0))
+    quads, qf = _quads([0.3, -0.2, 0.6, 0.3], torch.float64)
+    pos = torch.cat((sphere, quads)).to(dtype)
+    faces = torch.cat((F, qf + V.shape[0]))
+    for H, W in ((37, 53), (16, 16), (9, 130)):
+        got = []
+        for simd in (True, False):
+            before = kernel.set_simd(simd)
+            try:
+                with use_backend("native"):
+                    got.append(_visibility(pos[None], faces, H, W, cull))
+                    got.append(rasterize(pos, faces, (H, W), cull_backfaces=cull))
+            finally:
+                kernel.set_simd(before)
+        with use_backend("reference"):
+            ref = _visibility(pos[None], faces, H, W, cull)
+        assert torch.equal(got[0][0], got[2][0]) and torch.equal(got[0][1], got[2][1])
+        assert torch.equal(got[0][0], ref[0]) and torch.equal(got[0][1], ref[1])
+        for name in ("tri_id", "bary", "depth", "bary_dx", "bary_dy"):
+            assert torch.equal(getattr(got[1], name), getattr(got[3], name)), name
+        assert (got[0][0] >= 0).sum() > H * W // 4
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("derivatives", [True, False])
+def test_fused_pass_matches_the_two_passes(dtype, derivatives):
+    # rasterize on the kernel runs raster_fused (each band's fragments right after its z-buffer): the same ids,
+    # values, compact copies and gradients as the visibility pass followed by fragments_of, on a batch of two.
+    from difftex.geometry import raster as R
+
+    gen = torch.Generator().manual_seed(7)
+    V, F = icosphere(3, dtype=torch.float64)
+    sphere = camera.transform(V, _camera(gen, 2.2, 50.0))
+    quads, qf = _quads([0.3, -0.2, 0.6, 0.3], torch.float64)
+    pos = torch.stack((torch.cat((sphere, quads)), 1.5 * torch.cat((quads.flip(0), sphere)))).to(dtype)
+    faces = torch.cat((F, qf + V.shape[0]))
+    H, W = 29, 35
+    p1, p2 = pos.clone().requires_grad_(True), pos.clone().requires_grad_(True)
+    with use_backend("native"):
+        fused = rasterize(p1, faces, (H, W), derivatives=derivatives)
+        two = next(R.visible_layers(p2, faces, (H, W), False, functools.partial(R.fragments_of,
+                                                                              derivatives=derivatives)))
+    for name in ("tri_id", "bary", "depth", "bary_dx", "bary_dy"):
+        a, b = getattr(fused, name), getattr(two, name)
+        assert (a is None and b is None) or torch.equal(a, b), name
+    for a, b in zip(fused._compact, two._compact):
+        assert (a is None and b is None) or torch.equal(a, b)
+    uv = torch.rand(pos.shape[1], 2, generator=gen, dtype=dtype)
+    for fr, p in ((fused, p1), (two, p2)):
+        loss = fr.bary.square().sum() + fr.depth.sum() + difftex.interpolate(uv, faces, fr).square().sum()
+        if derivatives:
+            loss = loss + fr.bary_dx.abs().sum() + fr.bary_dy.square().sum()
+        loss.backward()
+    assert torch.equal(p1.grad, p2.grad)
+    # The kernel's own input checks still name the problem.
+    bad = pos.clone()
+    bad[1, 3, 0] = float("nan")
+    with use_backend("native"), pytest.raises(ValueError, match="pos.*non-finite"):
+        rasterize(bad, faces, (H, W), derivatives=derivatives)
+    with use_backend("native"), pytest.raises(ValueError, match="faces"):
+        rasterize(pos, torch.cat((faces, torch.tensor([[0, 1, 10**6]]))), (H, W), derivatives=derivatives)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fused_depth_peel_matches_the_separate_passes(dtype):
+    # depth_peel on the kernel: the k-buffer and every layer's fragments in one raster_fused call; the same
+    # layers as the k-buffer visibility pass followed by fragments_of per layer, gradients included.
+    from difftex.geometry import raster as R
+
+    gen = torch.Generator().manual_seed(9)
+    V, F = icosphere(3, dtype=torch.float64)
+    sphere = camera.transform(V, _camera(gen, 2.2, 50.0))
+    quads, qf = _quads([0.3, -0.2, 0.6, 0.3], torch.float64)
+    pos = torch.stack((torch.cat((sphere, quads)), torch.cat((quads.flip(0), sphere)))).to(dtype)
+    faces = torch.cat((F, qf + V.shape[0]))
+    H, W, K = 21, 30, 4
+    p1, p2 = pos.clone().requires_grad_(True), pos.clone().requires_grad_(True)
+    with use_backend("native"):
+        fused = depth_peel(p1, faces, (H, W), K)
+        sep = list(itertools.islice(R.visible_layers(p2, faces, (H, W), False, R.fragments_of, at_once=K), K))
+    assert (fused[2].tri_id >= 0).any()
+    for a, b in zip(fused, sep):
+        for name in ("tri_id", "bary", "depth", "bary_dx", "bary_dy"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+        for x, y in zip(a._compact, b._compact):
+            assert torch.equal(x, y)
+    for layers, p in ((fused, p1), (sep, p2)):
+        sum(fr.bary.square().sum() + fr.depth.sum() + fr.bary_dx.abs().sum() for fr in layers).backward()
+    # The layers' gradients are summed in another order (float32: its rounding).
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(p1.grad, p2.grad, rtol=tol, atol=tol)

@@ -85,6 +85,16 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
 // (or db) outputs are empty [0] tensors and cost nothing.
 std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
                                             bool packed, int64_t offset, bool derivatives);
+// raster.cpp: raster (no floor, no count) and raster_fragments (unpacked) of
+// each of its layers in one pass, each band's fragments computed right
+// after its z-buffer (k-buffer): (ids [K * B * H * W], depth [B * H * W]
+// float64 or, without keep_depth, empty, then per layer raster_fragments'
+// outputs: idx, bary, bary_dx, bary_dy [N, 3], bary [B, H, W, 3], depth
+// [B, H, W], bary_dx, bary_dy [B, H, W, 3]); the same values as the
+// separate calls. Just (ids, depth), both empty, where raster would return
+// empty tensors.
+std::vector<Tensor> raster_fused(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull, int64_t bits,
+                                 bool derivatives, bool keep_depth, int64_t layers);
 // Its first-order backward: the output gradients as autograd gives them
 // (compact and dense, or packed; undefined: none) -> the gradient of pos.
 Tensor raster_fragments_backward(Tensor pos, Tensor faces, Tensor tri_id,

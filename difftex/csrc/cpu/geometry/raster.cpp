@@ -28,7 +28,18 @@
 // decisions on exact values, and the small triangles it finds covering
 // centres are listed with those centres, so that their bands only set up
 // the depth plane. On icosphere(8) at 512^2 (1.3M triangles of ~0.2 px),
-// one thread: vertices 8 -> 4 ms, triangles 43 -> 24, bands 18 -> 9.
+// one thread: vertices 8 -> 4 ms, triangles 43 -> 24, bands 18 -> 9. Each
+// band resolves its z-buffer in a per-thread buffer in cache and writes its
+// rows out once at the end (clearing the outputs first was a second pass
+// over them and took their page faults where the allocator had handed the
+// memory back: 40 % of the bands' cycles on spot at 512^2, one thread, in
+// an rdtsc profile on a loaded machine); in plain mode
+// (rasterize: one layer, no floor, no count) the exact path's rows then
+// take four centres at a time (exact_row_avx2, same decisions).
+// raster_fused (rasterize's one call on the CPU) hands each band, once its
+// ids are written, to raster_fragments' row code (FragRows) on the same
+// thread, while the band's ids and triangles are in cache: one parallel
+// region, no second pass over the ids, no depth buffer written out.
 #include "common.h"
 #include "kernels.h"
 
@@ -623,13 +634,82 @@ __attribute__((target("avx2,fma"))) unsigned dropped8(const int64_t* fv, const V
   g.direct = small_bits & keep_small;
   return (out | dropped_box | (small_bits & ~keep_small)) & 0xffu;
 }
+
+// The z-buffer's exact-path row loop (plain mode) four centres at a time:
+// columns cs .. ce of one row of one triangle, E0..E2 its edge functions at
+// cs and s0..s2 their steps a column, zb / ib the band's depths and ids of
+// the row (indexed by column; three slots of slack past the last). The same
+// int64 edge tests, the same float64 depth (z0 + zx (x - x0)) + dy and the
+// same (depth, id) order as the scalar loop, lane by lane: each centre is
+// its own decision, so the result is the scalar one. Lanes past ce write
+// back what they read.
+// E + i s in lane i.
+DT_AVX2 __m256i lanes_from(int64_t E, int64_t s) {
+  return _mm256_add_epi64(_mm256_set1_epi64x(E), _mm256_setr_epi64x(0, s, s + s, s + s + s));
+}
+
+__attribute__((target("avx2,fma"))) void exact_row_avx2(double* zb, int64_t* ib, const double* xs, int64_t cs,
+                                                        int64_t ce, int64_t E0, int64_t E1, int64_t E2, int64_t s0,
+                                                        int64_t s1, int64_t s2, int64_t t0, int64_t t1, int64_t t2,
+                                                        double z0, double zx, double x0, double dy, int64_t f) {
+  const __m256i lane = _mm256_setr_epi64x(0, 1, 2, 3);
+  __m256i e0 = lanes_from(E0, s0), e1 = lanes_from(E1, s1), e2 = lanes_from(E2, s2);
+  const __m256i d0 = _mm256_set1_epi64x(4 * s0), d1 = _mm256_set1_epi64x(4 * s1), d2 = _mm256_set1_epi64x(4 * s2);
+  // E >= t as E > t - 1 (t is 0 or 1).
+  const __m256i u0 = _mm256_set1_epi64x(t0 - 1), u1 = _mm256_set1_epi64x(t1 - 1), u2 = _mm256_set1_epi64x(t2 - 1);
+  const __m256d vz0 = _mm256_set1_pd(z0), vzx = _mm256_set1_pd(zx), vx0 = _mm256_set1_pd(x0), vdy = _mm256_set1_pd(dy);
+  const __m256d lo = _mm256_set1_pd(-1.0), hi = _mm256_set1_pd(1.0);
+  const __m256i vf = _mm256_set1_epi64x(f);
+  for (int64_t c = cs; c <= ce; c += 4) {
+    __m256i in = _mm256_cmpgt_epi64(_mm256_set1_epi64x(ce - c + 1), lane);
+    in = _mm256_and_si256(in, _mm256_cmpgt_epi64(e0, u0));
+    in = _mm256_and_si256(in, _mm256_cmpgt_epi64(e1, u1));
+    in = _mm256_and_si256(in, _mm256_cmpgt_epi64(e2, u2));
+    e0 = _mm256_add_epi64(e0, d0), e1 = _mm256_add_epi64(e1, d1), e2 = _mm256_add_epi64(e2, d2);
+    if (_mm256_testz_si256(in, in)) continue;
+    const __m256d z = _mm256_add_pd(_mm256_add_pd(vz0, _mm256_mul_pd(vzx, _mm256_sub_pd(_mm256_loadu_pd(xs + c), vx0))), vdy);
+    const __m256d old = _mm256_loadu_pd(zb + c);
+    const __m256i oid = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(ib + c));
+    const __m256d range = _mm256_and_pd(_mm256_cmp_pd(z, lo, _CMP_GE_OQ), _mm256_cmp_pd(z, hi, _CMP_LE_OQ));
+    const __m256d nearer = _mm256_or_pd(_mm256_cmp_pd(z, old, _CMP_LT_OQ),
+                                        _mm256_and_pd(_mm256_cmp_pd(z, old, _CMP_EQ_OQ),
+                                                      _mm256_castsi256_pd(_mm256_cmpgt_epi64(oid, vf))));
+    const __m256d win = _mm256_and_pd(_mm256_castsi256_pd(in), _mm256_and_pd(range, nearer));
+    _mm256_storeu_pd(zb + c, _mm256_blendv_pd(old, z, win));
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(ib + c),
+                        _mm256_castpd_si256(_mm256_blendv_pd(_mm256_castsi256_pd(oid), _mm256_castsi256_pd(vf), win)));
+  }
+}
 #endif
+
+// The fused pass (raster_fused): called by the thread that resolved band
+// R0 .. R1 - 1 of batch item bi, right after its rows of ids (all_ids:
+// the layer's whole [B * H * W] output) are written, while they and the
+// band's triangles are in cache; once per layer.
+struct BandSink {
+  virtual void band(const int64_t* all_ids, int64_t bi, int64_t R0, int64_t R1, int64_t layer) = 0;
+
+ protected:
+  ~BandSink() = default;
+};
+
+std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull, int64_t bits,
+                                       Tensor floor_z, Tensor floor_id, bool count, int64_t layers, BandSink* sink,
+                                       bool keep_depth);
 
 }  // namespace
 
 std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W,
                                                 bool cull, int64_t bits, Tensor floor_z,
                                                 Tensor floor_id, bool count, int64_t layers) {
+  return raster_impl(pos, faces, H, W, cull, bits, floor_z, floor_id, count, layers, nullptr, true);
+}
+
+namespace {
+
+std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull, int64_t bits,
+                                       Tensor floor_z, Tensor floor_id, bool count, int64_t layers, BandSink* sink,
+                                       bool keep_depth) {
   DT_CHECK(pos.is_cpu() && (pos.scalar_type() == kFloat64 || pos.scalar_type() == kFloat32) &&
                   pos.dim() == 3 && pos.size(2) == 4,
               "raster: pos must be a CPU float32 or float64 tensor [B, V, 4]");
@@ -656,14 +736,16 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
   // K > 1: ids layer-major [K, B * H * W] (each layer contiguous) and the
   // depth of the K-th layer only (the floor of any further layer).
   auto ids = empty({K * B * HW}, kInt64);
-  auto depth = empty({B * HW}, kFloat64);
+  DT_CHECK(!sink || (!has_floor && !count), "raster: the fused pass takes no floor and no count");
+  DT_CHECK(keep_depth || sink, "raster: the depth is kept unless fused");
+  auto depth = empty({keep_depth ? B * HW : 0}, kFloat64);
   const double* fz = has_floor ? floor_z.mutable_data_ptr<double>() : nullptr;
   const int64_t* fi = has_floor ? floor_id.mutable_data_ptr<int64_t>() : nullptr;
   int64_t* out_id = ids.mutable_data_ptr<int64_t>();
-  double* out_z = depth.mutable_data_ptr<double>();
+  double* out_z = keep_depth ? depth.mutable_data_ptr<double>() : nullptr;
   const int64_t S = bits;
   const double sx = S > 0 ? double(W << (S - 1)) : 0.0, sy = S > 0 ? -double(H << (S - 1)) : 0.0;
-  std::vector<double> xs(W), ys(H);
+  std::vector<double> xs(W + 4, 0.0), ys(H);  // + 4: the four-pixel loop's masked lanes past the last column
   for (int64_t c = 0; c < W; ++c) xs[c] = (double(c) + 0.5) * (2.0 / double(W)) - 1.0;
   for (int64_t r = 0; r < H; ++r) ys[r] = -((double(r) + 0.5) * (2.0 / double(H)) - 1.0);
   const int64_t nb = (H + kBand - 1) / kBand;
@@ -811,7 +893,7 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
     });
     // Bands: each thread owns its rows of the output.
     int64_t* oid = out_id + bi * HW;
-    double* oz = out_z + bi * HW;
+    double* oz = out_z ? out_z + bi * HW : nullptr;
     const double* bfz = has_floor ? fz + bi * HW : nullptr;
     const int64_t* bfi = has_floor ? fi + bi * HW : nullptr;
     // Plain (one layer, no floor, no count: rasterize itself) is compiled
@@ -831,18 +913,25 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
         double* const ozl = oz;
         int64_t *const oidl = oid, *const out_idl = out_id;
         const Ctx cxl = cx;
+        BandSink* const sinkl = sink;
         Exact e;
         Float fl;
-        // K > 1: the band's k-buffer, in cache, written out per layer at the
-        // end of the band; K = 1 works in the output itself.
-        std::vector<double> kz(Kl > 1 ? kBand * Wl * Kl : 0);
-        std::vector<int64_t> ki(Kl > 1 ? kBand * Wl * Kl : 0);
+        // The band's z-buffer (K > 1: k-buffer; a count: the counts) in
+        // cache, written out at the end of the band: clearing the outputs
+        // themselves first cost a second pass over them (and their page
+        // faults, where the allocator had handed the memory back), more
+        // than the rasterization of a small mesh's band. + 4: the four-
+        // pixel loop's slack past the last column.
+        const bool vec = Plain::value && simd_on();
+        (void)vec;
+        std::vector<double> kz(kBand * Wl * Kl + 4);
+        std::vector<int64_t> ki(kBand * Wl * Kl + 4);
         for (int64_t band; (band = next_band()) >= 0;) {
           const int64_t R0 = band * kBand, R1 = std::min(Hl, R0 + kBand);
           // Pixel p's K entries start at zb / ib + (p - p0) * K.
-          double* zb = Kl > 1 ? kz.data() : ozl;
-          int64_t* ib = Kl > 1 ? ki.data() : oidl;
-          const int64_t p0 = Kl > 1 ? R0 * Wl : 0;
+          double* const zb = kz.data();
+          int64_t* const ib = ki.data();
+          const int64_t p0 = R0 * Wl;
           for (int64_t j = (R0 * Wl - p0) * Kl; j < (R1 * Wl - p0) * Kl; ++j) {
             zb[j] = INFINITY;
             ib[j] = countl ? 0 : kEmpty;
@@ -851,14 +940,15 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
           auto frag = [&](int64_t p, double z, int64_t f) {
             if (!(z >= -1 && z <= 1)) return;
             if constexpr (Plain::value) {
-              if (z < ozl[p] || (z == ozl[p] && f < oidl[p])) {
-                ozl[p] = z;
-                oidl[p] = f;
+              const int64_t q = p - p0;
+              if (z < zb[q] || (z == zb[q] && f < ib[q])) {
+                zb[q] = z;
+                ib[q] = f;
               }
               return;
             }
             if (countl) {
-              ++oidl[p];
+              ++ib[p - p0];
               return;
             }
             if (floorl && !(z > bfzl[p] || (z == bfzl[p] && f > bfil[p]))) return;
@@ -916,6 +1006,29 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
                 int64_t E2 = e.a[2] * qx0 + e.c[2] + e.b[2] * qy;
                 const int64_t s0 = e.a[0] * step, s1 = e.a[1] * step, s2 = e.a[2] * step;
                 const double dy = e.zy * (ysl[r] - e.y0);
+#if DT_HAVE_AVX2
+                if (vec) {
+                  // Wider boxes: first the row's span, as below.
+                  int64_t lo = 0, hi = c1 - c0;
+                  if (hi >= 8) {
+                    const int64_t Es[3] = {E0, E1, E2}, ss[3] = {s0, s1, s2};
+                    for (int k = 0; k < 3 && lo <= hi; ++k) {
+                      const int64_t d = Es[k] - e.thr[k];
+                      if (ss[k] > 0)
+                        lo = std::max(lo, -floor_div(d, ss[k]));
+                      else if (ss[k] < 0)
+                        hi = std::min(hi, floor_div(d, -ss[k]));
+                      else if (d < 0)
+                        hi = -1;
+                    }
+                    if (lo > hi) continue;
+                  }
+                  const int64_t q = (r - R0) * Wl;
+                  exact_row_avx2(zb + q, ib + q, xsl, c0 + lo, c0 + hi, E0 + s0 * lo, E1 + s1 * lo, E2 + s2 * lo, s0,
+                                 s1, s2, t0, t1, t2, z0, zx, x0, dy, f);
+                  continue;
+                }
+#endif
                 if (c1 - c0 < 8) {
                   for (int64_t c = c0; c <= c1; ++c, E0 += s0, E1 += s1, E2 += s2) {
                     if (E0 >= t0 && E1 >= t1 && E2 >= t2) frag(r * Wl + c, (z0 + zx * (xsl[c] - x0)) + dy, f);
@@ -956,11 +1069,19 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
             for (int64_t p = R0 * Wl; p < R1 * Wl; ++p) {
               const int64_t* is = ib + (p - p0) * Kl;
               for (int64_t k = 0; k < Kl; ++k) out_idl[k * Bl * HWl + bil * HWl + p] = is[k] == kEmpty ? -1 : is[k];
-              ozl[p] = zb[(p - p0) * Kl + Kl - 1];
+              if (ozl) ozl[p] = zb[(p - p0) * Kl + Kl - 1];
             }
-          } else if (!countl) {
-            for (int64_t p = R0 * Wl; p < R1 * Wl; ++p)
-              if (oidl[p] == kEmpty) oidl[p] = -1;
+            if (sinkl)
+              for (int64_t k = 0; k < Kl; ++k) sinkl->band(out_idl + k * Bl * HWl, bil, R0, R1, k);
+          } else if (countl) {
+            std::memcpy(oidl + R0 * Wl, ib, sizeof(int64_t) * (R1 - R0) * Wl);
+          } else {
+            for (int64_t p = R0 * Wl; p < R1 * Wl; ++p) {
+              const int64_t i = ib[p - p0];
+              oidl[p] = i == kEmpty ? -1 : i;
+            }
+            if (ozl) std::memcpy(ozl + R0 * Wl, zb, sizeof(double) * (R1 - R0) * Wl);
+            if (sinkl) sinkl->band(out_idl, bil, R0, R1, 0);
           }
         }
       });
@@ -972,6 +1093,8 @@ std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W
   }
   return {ids, depth};
 }
+
+}  // namespace
 
 namespace {
 
@@ -1122,6 +1245,90 @@ struct Tri {
 
 }  // namespace
 
+// One thread's rows of raster_fragments' outputs: row(r, n) writes image
+// row r (of all B * H) of the dense outputs from tri_id (pid), its covered
+// pixels also in compact form from slot n on. o as raster_fragments' outputs
+// after idx (packed: rast, db; else bary_c, dx_c, dy_c, bary, depth,
+// bary_dx, bary_dy); the compact ones may point into a band's own buffers
+// (the fused pass: n counts from 0 there).
+template <typename T>
+struct FragRows {
+  const T* pp;
+  const int64_t *pf, *pid;
+  int64_t V, F, H, W;
+  bool packed, derivatives;
+  int64_t offset;
+  T* const* o;
+  int64_t* pidx;
+  Tri tri{};  // value-initialised: gcc cannot see that load() runs before the first use
+  int64_t loaded = -1;  // the (batch, face) in tri
+
+  int64_t row(int64_t r, int64_t n) {
+    T b[3] = {}, dx[3] = {}, dy[3] = {};
+    // Pixel centres and scales in double, as the torch path's (_pixels).
+    const double sx = 2.0 / double(W), sy = -2.0 / double(H);
+    const double hx = 2.0 / double(W), hy = 2.0 / double(H);
+    const int64_t bi = r / H, rw = r - bi * H;
+    // _pixel_centres: (i + 0.5) * (2 / n) - 1, negated for rows.
+    const double y = -((double(rw) + 0.5) * hy - 1.0);
+    int64_t bg = r * W;  // the current background run is [bg, p)
+    auto zero_run = [&](int64_t end) {
+      if (end == bg) return;
+      const size_t m = size_t(end - bg) * sizeof(T);
+      if (packed) {
+        std::memset(o[0] + 4 * bg, 0, 4 * m);
+        if (derivatives) std::memset(o[1] + 4 * bg, 0, 4 * m);
+      } else {
+        std::memset(o[3] + 3 * bg, 0, 3 * m);
+        if (derivatives)
+          for (int k : {5, 6}) std::memset(o[k] + 3 * bg, 0, 3 * m);
+        std::memset(o[4] + bg, 0, m);
+      }
+    };
+    for (int64_t col = 0; col < W; ++col) {
+      const int64_t p = r * W + col;
+      const int64_t f = pid[p];
+      if (f < 0) continue;  // background costs one test (most of a deep peeling layer)
+      // Small triangles change every pixel: their face rows 2 kAhead
+      // pixels ahead, then (those rows in cache) their corners.
+      if (col + 2 * kAhead < W && pid[p + 2 * kAhead] >= 0) DT_PREFETCH(pf + 3 * pid[p + 2 * kAhead], false);
+      if (col + kAhead < W && pid[p + kAhead] >= 0 && pid[p + kAhead] != pid[p + kAhead - 1]) {
+        const int64_t* fa = pf + 3 * pid[p + kAhead];
+        for (int i = 0; i < 3; ++i) DT_PREFETCH(pp + 4 * (bi * V + fa[i]), false);
+      }
+      zero_run(p);
+      bg = p + 1;
+      if (bi * F + f != loaded) {
+        const int64_t rows3[3] = {bi * V + pf[3 * f], bi * V + pf[3 * f + 1], bi * V + pf[3 * f + 2]};
+        tri.load(pp, rows3);
+        loaded = bi * F + f;
+      }
+      const double x = (double(col) + 0.5) * hx - 1.0;
+      const T z = tri.eval(x, y, sx, sy, b, derivatives ? dx : nullptr, dy);
+      pidx[n] = p;
+      if (packed) {
+        T* ra = o[0] + 4 * p;
+        ra[0] = b[0], ra[1] = b[1], ra[2] = z, ra[3] = T(f + 1 + offset);
+        if (derivatives) {
+          T* db = o[1] + 4 * p;
+          db[0] = dx[0], db[1] = dy[0], db[2] = dx[1], db[3] = dy[1];
+        }
+      } else {
+        for (int k = 0; k < 3; ++k) o[0][3 * n + k] = o[3][3 * p + k] = b[k];
+        if (derivatives)
+          for (int k = 0; k < 3; ++k) {
+            o[1][3 * n + k] = o[5][3 * p + k] = dx[k];
+            o[2][3 * n + k] = o[6][3 * p + k] = dy[k];
+          }
+        o[4][p] = z;
+      }
+      ++n;
+    }
+    zero_run((r + 1) * W);
+    return n;
+  }
+};
+
 // rasterize's differentiable pass, forward only (geometry/raster.py
 // fragments_of; its torch formula gives the gradients). One threaded pass
 // over the pixels of tri_id [B, H, W] (-1 background) writes the dense
@@ -1178,76 +1385,122 @@ std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
     int64_t* pidx = idx.mutable_data_ptr<int64_t>();
     std::vector<T*> o;
     for (size_t i = 1; i < out.size(); ++i) o.push_back(out[i].mutable_data_ptr<T>());
-    // Pixel centres and scales in double, as the torch path's (_pixels).
-    const double sx = 2.0 / double(W), sy = -2.0 / double(H);
-    const double hx = 2.0 / double(W), hy = 2.0 / double(H);
     constexpr int64_t kRows = 8;  // rows an item
     dynamic_for((rows + kRows - 1) / kRows, [&](auto&& next_block) {
-      T b[3] = {}, dx[3] = {}, dy[3] = {};
-      Tri tri{};  // value-initialised: gcc cannot see that load() runs before the first use
-      int64_t loaded = -1;  // the (batch, face) in tri
+      FragRows<T> fr{pp, pf, pid, V, F, H, W, packed, derivatives, offset, o.data(), pidx};
       for (int64_t blk; (blk = next_block()) >= 0;)
-      for (int64_t r = blk * kRows; r < std::min(rows, (blk + 1) * kRows); ++r) {
-        const int64_t bi = r / H, row = r - bi * H;
-        // _pixel_centres: (i + 0.5) * (2 / n) - 1, negated for rows.
-        const double y = -((double(row) + 0.5) * hy - 1.0);
-        int64_t n = first[r];
-        int64_t bg = r * W;  // the current background run is [bg, p)
-        auto zero_run = [&](int64_t end) {
-          if (end == bg) return;
-          const size_t m = size_t(end - bg) * sizeof(T);
-          if (packed) {
-            std::memset(o[0] + 4 * bg, 0, 4 * m);
-            if (derivatives) std::memset(o[1] + 4 * bg, 0, 4 * m);
-          } else {
-            std::memset(o[3] + 3 * bg, 0, 3 * m);
-            if (derivatives)
-              for (int k : {5, 6}) std::memset(o[k] + 3 * bg, 0, 3 * m);
-            std::memset(o[4] + bg, 0, m);
-          }
-        };
-        for (int64_t col = 0; col < W; ++col) {
-          const int64_t p = r * W + col;
-          const int64_t f = pid[p];
-          if (f < 0) continue;  // background costs one test (most of a deep peeling layer)
-          // Small triangles change every pixel: their face rows 2 kAhead
-          // pixels ahead, then (those rows in cache) their corners.
-          if (col + 2 * kAhead < W && pid[p + 2 * kAhead] >= 0) DT_PREFETCH(pf + 3 * pid[p + 2 * kAhead], false);
-          if (col + kAhead < W && pid[p + kAhead] >= 0 && pid[p + kAhead] != pid[p + kAhead - 1]) {
-            const int64_t* fa = pf + 3 * pid[p + kAhead];
-            for (int i = 0; i < 3; ++i) DT_PREFETCH(pp + 4 * (bi * V + fa[i]), false);
-          }
-          zero_run(p);
-          bg = p + 1;
-          if (bi * F + f != loaded) {
-            const int64_t rows3[3] = {bi * V + pf[3 * f], bi * V + pf[3 * f + 1], bi * V + pf[3 * f + 2]};
-            tri.load(pp, rows3);
-            loaded = bi * F + f;
-          }
-          const double x = (double(col) + 0.5) * hx - 1.0;
-          const T z = tri.eval(x, y, sx, sy, b, derivatives ? dx : nullptr, dy);
-          pidx[n] = p;
-          if (packed) {
-            T* ra = o[0] + 4 * p;
-            ra[0] = b[0], ra[1] = b[1], ra[2] = z, ra[3] = T(f + 1 + offset);
-            if (derivatives) {
-              T* db = o[1] + 4 * p;
-              db[0] = dx[0], db[1] = dy[0], db[2] = dx[1], db[3] = dy[1];
-            }
-          } else {
-            for (int k = 0; k < 3; ++k) o[0][3 * n + k] = o[3][3 * p + k] = b[k];
-            if (derivatives)
-              for (int k = 0; k < 3; ++k) {
-                o[1][3 * n + k] = o[5][3 * p + k] = dx[k];
-                o[2][3 * n + k] = o[6][3 * p + k] = dy[k];
-              }
-            o[4][p] = z;
-          }
-          ++n;
-        }
-        zero_run((r + 1) * W);
-      }
+        for (int64_t r = blk * kRows; r < std::min(rows, (blk + 1) * kRows); ++r) fr.row(r, first[r]);
     });
+  });
+  return out;
+}
+
+namespace {
+
+// raster_fused's band work: the band's rows of the dense outputs, and its
+// covered pixels in compact form in the band's own buffers (their global
+// slots are known only once every band is done; the copy into place is
+// one memcpy per band and output).
+template <typename T>
+struct FusedSink final : BandSink {
+  const T* pp;
+  const int64_t* pf;
+  int64_t V, F, H, W, nb, nc;  // nc: chunks a layer (B * nb)
+  bool derivatives;
+  std::vector<T*> bary, depth, bdx, bdy;  // a layer each
+  struct Chunk {
+    int64_t n = 0;
+    std::unique_ptr<int64_t[]> idx;
+    std::unique_ptr<T[]> b, dx, dy;
+  };
+  std::vector<Chunk> chunks;  // [K, B * nb], batch-major: flat pixel order
+
+  void band(const int64_t* all_ids, int64_t bi, int64_t R0, int64_t R1, int64_t k) override {
+    Chunk& ch = chunks[k * nc + bi * nb + R0 / kBand];
+    const int64_t r0 = bi * H + R0, r1 = bi * H + R1;
+    int64_t n = 0;
+    for (int64_t p = r0 * W; p < r1 * W; ++p) n += all_ids[p] >= 0;
+    ch.n = n;
+    ch.idx.reset(new int64_t[std::max<int64_t>(n, 1)]);
+    ch.b.reset(new T[3 * std::max<int64_t>(n, 1)]);
+    if (derivatives) {
+      ch.dx.reset(new T[3 * std::max<int64_t>(n, 1)]);
+      ch.dy.reset(new T[3 * std::max<int64_t>(n, 1)]);
+    }
+    T* const o[7] = {ch.b.get(), ch.dx.get(), ch.dy.get(), bary[k], depth[k], bdx[k], bdy[k]};
+    FragRows<T> fr{pp, pf, all_ids, V, F, H, W, false, derivatives, 0, o, ch.idx.get()};
+    int64_t m = 0;
+    for (int64_t r = r0; r < r1; ++r) m = fr.row(r, m);
+  }
+};
+
+}  // namespace
+
+std::vector<Tensor> raster_fused(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull, int64_t bits,
+                                 bool derivatives, bool keep_depth, int64_t layers) {
+  DT_CHECK(pos.is_cpu() && (pos.scalar_type() == kFloat64 || pos.scalar_type() == kFloat32) && pos.dim() == 3 &&
+               pos.size(2) == 4 && H > 0 && W > 0 && layers >= 1,
+           "raster_fused: pos must be a CPU float32 or float64 tensor [B, V, 4], layers >= 1");
+  pos = contig(pos);
+  faces = contig(faces);
+  const int64_t B = pos.size(0), V = pos.size(1), F = faces.size(0), nb = (H + kBand - 1) / kBand, K = layers;
+  auto opt = options_of(pos);
+  auto none = [&] { return empty({0}, opt); };
+  // Every byte of the dense outputs is written by the bands (zeros on background).
+  std::vector<Tensor> dense;  // per layer: bary, depth, bary_dx, bary_dy
+  for (int64_t k = 0; k < K; ++k) {
+    dense.push_back(empty({B, H, W, 3}, opt));
+    dense.push_back(empty({B, H, W}, opt));
+    for (int d = 0; d < 2; ++d) dense.push_back(derivatives ? empty({B, H, W, 3}, opt) : none());
+  }
+  std::vector<Tensor> out;
+  DT_DISPATCH_FLOATING_TYPES(pos.scalar_type(), "raster_fused", [&] {
+    using T = scalar_t;
+    FusedSink<T> sink;
+    sink.pp = pos.mutable_data_ptr<T>();
+    sink.pf = faces.numel() ? faces.mutable_data_ptr<int64_t>() : nullptr;
+    sink.V = V, sink.F = F, sink.H = H, sink.W = W, sink.nb = nb, sink.nc = B * nb, sink.derivatives = derivatives;
+    for (int64_t k = 0; k < K; ++k) {
+      sink.bary.push_back(dense[4 * k].mutable_data_ptr<T>());
+      sink.depth.push_back(dense[4 * k + 1].mutable_data_ptr<T>());
+      sink.bdx.push_back(derivatives ? dense[4 * k + 2].mutable_data_ptr<T>() : nullptr);
+      sink.bdy.push_back(derivatives ? dense[4 * k + 3].mutable_data_ptr<T>() : nullptr);
+    }
+    sink.chunks.resize(K * B * nb);
+    auto [ids, zbuf] = raster_impl(pos, faces, H, W, cull, bits, empty({0}, kFloat64), empty({0}, kInt64), false, K,
+                                   &sink, keep_depth);
+    if (ids.numel() == 0 && B * H * W > 0) {  // a non-finite position or a bad index: the caller names it
+      out = {ids, zbuf};
+      return;
+    }
+    out = {ids, zbuf};
+    const int64_t nc = B * nb;
+    for (int64_t k = 0; k < K; ++k) {
+      const auto* chunks = sink.chunks.data() + k * nc;
+      std::vector<int64_t> at(nc + 1, 0);
+      for (int64_t c = 0; c < nc; ++c) at[c + 1] = at[c] + chunks[c].n;
+      const int64_t N = at[nc];
+      Tensor idx = empty({N}, kInt64), bc = empty({N, 3}, opt);
+      Tensor dxc = derivatives ? empty({N, 3}, opt) : none(), dyc = derivatives ? empty({N, 3}, opt) : none();
+      int64_t* pidx = idx.mutable_data_ptr<int64_t>();
+      T* pb = bc.mutable_data_ptr<T>();
+      T* pdx = derivatives ? dxc.mutable_data_ptr<T>() : nullptr;
+      T* pdy = derivatives ? dyc.mutable_data_ptr<T>() : nullptr;
+      parallel_for(0, nc, 8, [&](int64_t lo, int64_t hi) {
+        for (int64_t c = lo; c < hi; ++c) {
+          const auto& ch = chunks[c];
+          if (!ch.n) continue;
+          std::memcpy(pidx + at[c], ch.idx.get(), sizeof(int64_t) * ch.n);
+          std::memcpy(pb + 3 * at[c], ch.b.get(), sizeof(T) * 3 * ch.n);
+          if (derivatives) {
+            std::memcpy(pdx + 3 * at[c], ch.dx.get(), sizeof(T) * 3 * ch.n);
+            std::memcpy(pdy + 3 * at[c], ch.dy.get(), sizeof(T) * 3 * ch.n);
+          }
+        }
+      });
+      for (const Tensor& t : {idx, bc, dxc, dyc}) out.push_back(t);
+      for (int d = 0; d < 4; ++d) out.push_back(dense[4 * k + d]);
+    }
   });
   return out;
 }
