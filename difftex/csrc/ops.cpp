@@ -318,6 +318,7 @@ PyObject* py_bool_switch(PyObject* arg, bool (*set)(bool)) {
 
 PyObject* py_set_simd(PyObject*, PyObject* arg) { return py_bool_switch(arg, &set_simd); }
 PyObject* py_set_wide(PyObject*, PyObject* arg) { return py_bool_switch(arg, &set_wide); }
+PyObject* py_set_stream(PyObject*, PyObject* arg) { return py_bool_switch(arg, &set_stream); }
 PyObject* py_simd_available(PyObject*, PyObject*) { return PyBool_FromLong(simd_available()); }
 PyObject* py_wide_available(PyObject*, PyObject*) { return PyBool_FromLong(wide_available()); }
 
@@ -330,6 +331,9 @@ PyMethodDef methods[] = {
      "set_wide(enabled) -> bool: read float32 bilinear / bicubic forwards sixteen points at a time (AVX-512; "
      "default on where set_simd is); returns the previous setting"},
     {"wide_available", py_wide_available, METH_NOARGS, "whether this CPU runs the sixteen-point AVX-512 forward"},
+    {"set_stream", py_set_stream, METH_O,
+     "set_stream(enabled) -> bool: let the sixteen-point forward write outputs of 1 MB or more with non-temporal "
+     "stores (same values; default on); returns the previous setting"},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module_def = {PyModuleDef_HEAD_INIT, "_C",

@@ -2,15 +2,24 @@
 
 A 1024x1024 RGB texture sampled at 512x512 points (``--size``, ``--points``),
 bilinear and bicubic (``--filters``), every wrap mode (``--wraps``), forward
-and forward+backward (gradients to the texture and the uv). The peers, each
-timed interleaved with ours in rounds, in a new order every round (a pause
-before every timed call: after a call torch's and Dr.Jit's worker threads
-spin for 10-20 ms and would slow the next call on a 2-core machine; in a
-fixed order, our planar bilinear clamp forward, timed right after
-Dr.Jit's, took 6.6-6.9 ms after a 30 ms pause, 3.4-4.8 ms shuffled). Two tables: each timed call
-the first after the pause, and the last of a run of ``--settle`` + 1 calls
-(a loop's time: on some VMs a call after the pause finds the caches emptied
-and its worker threads slow to wake, see difftex/testing/timing.py). The peers:
+and forward+backward (gradients to the texture and the uv). The peers are
+timed interleaved with ours, in a new order every round (a pause before
+each library's turn: after a call torch's and Dr.Jit's worker threads spin
+for 10-20 ms and would slow the next call on a 2-core machine; in a fixed
+order, our planar bilinear clamp forward, timed right after Dr.Jit's, took
+6.6-6.9 ms after a 30 ms pause, 3.4-4.8 ms shuffled). Two tables:
+
+* **steady state** (the speed issues' protocol, ``difftex.testing.time_blocks``):
+  blocks of ``--calls`` back-to-back calls of one library, the median of
+  all but the first ``--skip`` of each block, libraries interleaved block
+  by block (``--blocks`` rounds): a render or training loop's time, its
+  own threads awake and its caches warm;
+* **first call after an idle pause** (``time_interleaved``): each timed
+  call the first after the pause (on some VMs such a call finds the caches
+  emptied and its worker threads slow to wake, see
+  difftex/testing/timing.py), reported apart.
+
+The peers:
 
 * **Dr.Jit** (the JIT behind Mitsuba 3; the ``peers`` extra, LLVM backend on
   the CPU): ``Texture2f`` with its wrap mode (repeat, clamp, mirror: it has
@@ -31,8 +40,9 @@ right after a 30 ms pause and 0.27-0.30 ms in a loop (a pure-Python loop
 1.0x), so the after-the-pause table mostly times how the host wakes the
 memory path; its first line measures that once per run.
 
-Printed per case: medians in ms, the median over rounds of the paired ratio
-ours / peer with its interquartile range, and the achieved bandwidth: the
+Printed per case: medians in ms, the median of the paired ratio ours / peer
+(the k-th timed call of one with the k-th of the other; after a pause: the
+same round) with its interquartile range, and the achieved bandwidth: the
 bytes a read must move at least (texture once, uv, the output; with the
 backward also the output gradient, the texture gradient zeroed and
 written, the uv gradient) over the time. Before timing, the script checks
@@ -41,7 +51,7 @@ texture gradients) of both agree to float32 rounding. Last, the trilinear
 filter's forward+backward against our bilinear one (same points, the
 view's uv derivatives).
 
-    python -m experiments.bench.bench_sample [--size 1024] [--points 512] [--reps 15] [--out docs/bench_sample.md]
+    python -m experiments.bench.bench_sample [--uv view|random] [--filters bilinear] [--blocks 8] [--out docs/bench_sample.md]
 
 Target (issue 19, on a quiet 2-core machine): bilinear and bicubic at most
 0.8x Dr.Jit, forward and forward+backward, every wrap mode; trilinear
@@ -58,6 +68,7 @@ import torch
 
 import difftex
 from difftex.testing import time_interleaved
+from difftex.testing.timing import Timing, time_blocks
 from difftex import _native as native
 
 FILTERS = {"bilinear": "Linear", "bicubic": "cubic", "nearest": "Nearest"}
@@ -177,7 +188,7 @@ def ours_step(tex: torch.Tensor, uv: torch.Tensor, grad: bool, backend: str, **k
 
 
 def ratio_stats(a, b) -> tuple[float, float, float]:
-    """Median and quartiles over rounds of a / b (two Timings of one time_interleaved call)."""
+    """Median and quartiles of the paired a / b (two Timings of one time_interleaved or time_blocks call)."""
     r = [x / y for x, y in zip(a.times_ms, b.times_ms)]
     if len(r) < 2:
         return r[0], r[0], r[0]
@@ -204,8 +215,16 @@ def agreement(peer: Optional[DrJit], tex: torch.Tensor, uv: torch.Tensor, wraps)
     return lines
 
 
-def table(args, tex, uv, peer, settle: int) -> list[str]:
-    """The table of every filter, wrap and pass, timed after a pause (settle 0) or in a loop (settle calls first)."""
+def timed(args, fns, steady: bool) -> list[Timing]:
+    """Times of fns: steady state (time_blocks) or each call the first after a pause (time_interleaved)."""
+    if steady:
+        return time_blocks(fns, args.blocks, calls=args.calls, skip=args.skip, pause=args.pause, shuffle=True)
+    # in a new order every round: a call right after Dr.Jit's ran 2x slower even after the pause
+    return time_interleaved(fns, args.reps, warmup=2, pause=args.pause, shuffle=True)
+
+
+def table(args, tex, uv, peer, steady: bool) -> list[str]:
+    """The table of every filter, wrap and pass, in the steady state or as the first call after a pause."""
     H, W = tex.shape[-2:]
     M = uv.shape[1] * uv.shape[2]
     rows = ["| filter | wrap | pass | ours ms | ours channels_last ms | Dr.Jit ms | grid_sample ms | "
@@ -222,8 +241,7 @@ def table(args, tex, uv, peer, settle: int) -> list[str]:
                 has_peer = peer is not None and wrap in DRJIT_WRAPS
                 if has_peer:
                     fns.append(peer.step(filt, wrap, grad))
-                # in a new order every round: a call right after Dr.Jit's ran 2x slower even after the pause
-                times = time_interleaved(fns, args.reps, warmup=2, pause=args.pause, settle=settle, shuffle=True)
+                times = timed(args, fns, steady)
                 ours, gs, cl = times[0], times[1], times[2]
                 gb = bytes_moved(3, H, W, M, grad) / 1e6
                 rg = ratio_stats(ours, gs)
@@ -242,12 +260,12 @@ def table(args, tex, uv, peer, settle: int) -> list[str]:
 
 
 def wake_cost(tex: torch.Tensor, args) -> str:
-    """The machine's own slowdown after the pause: torch's sum of the texture, after it and in a loop."""
+    """The machine's own slowdown after the pause: torch's sum of the texture, as the first call after it and in the steady state."""
     total = lambda: tex.sum()  # noqa: E731
-    (cold,) = time_interleaved([total], args.reps, warmup=2, pause=args.pause)
-    (warm,) = time_interleaved([total], args.reps, warmup=2, pause=args.pause, settle=args.settle)
+    (cold,) = timed(args, [total], False)
+    (warm,) = timed(args, [total], True)
     return (f"The machine after the pause: torch's sum of the {tex.numel() * tex.element_size() / 2**20:.0f} MB "
-            f"texture takes {cold.median:.2f} ms as the first call after it, {warm.median:.2f} ms in a loop "
+            f"texture takes {cold.median:.2f} ms as the first call after it, {warm.median:.2f} ms in the steady state "
             f"({cold.median / warm.median:.1f}x): every library's first call pays this.")
 
 
@@ -262,20 +280,25 @@ def run(args) -> list[str]:
         print("# drjit is not installed (pip install 'difftex[peers]'): Dr.Jit columns skipped")
     rows = [wake_cost(tex, args), ""]
     print("# " + rows[0])
-    for settle in sorted({0, args.settle}):
-        title = (f"**In a loop**: each timed call follows {settle} untimed calls of the same function after the "
-                 "pause (the library's own threads awake, as in a render or training loop)."
-                 if settle else "**After a pause**: each timed call the first after the pause.")
+    for steady in (True, False):
+        title = (f"**Steady state** (time_blocks): blocks of {args.calls} back-to-back calls of one library, the "
+                 f"median of calls {args.skip + 1}-{args.calls} of every block, libraries interleaved block by block, "
+                 f"{args.blocks} rounds (a render or training loop's time)."
+                 if steady else "**First call after an idle pause**: each timed call the first after a "
+                 f"{args.pause * 1e3:.0f} ms pause, {args.reps} rounds.")
         print("# " + title)
-        rows += [title, ""] + table(args, tex, uv, peer, settle) + [""]
+        rows += [title, ""] + table(args, tex, uv, peer, steady) + [""]
+        if steady and not args.after_pause:
+            break
     # Trilinear against our own bilinear, forward+backward, the same points.
     tri = ours_step(tex, uv, True, "auto", filter="trilinear", wrap="repeat", uv_dx=dx, uv_dy=dy)
     bil = ours_step(tex, uv, True, "auto", filter="bilinear", wrap="repeat")
-    for settle in sorted({0, args.settle}):
-        a, b = time_interleaved([tri, bil], args.reps, warmup=2, pause=args.pause, settle=settle, shuffle=True)
+    for steady in (True, False) if args.after_pause else (True,):
+        a, b = timed(args, [tri, bil], steady)
         r = ratio_stats(a, b)
         rows.append(f"- trilinear fwd+bwd {a.median:.2f} ms, bilinear fwd+bwd {b.median:.2f} ms: trilinear / bilinear "
-                    f"{r[0]:.2f} [{r[1]:.2f}-{r[2]:.2f}] (repeat, {'in a loop' if settle else 'after a pause'})")
+                    f"{r[0]:.2f} [{r[1]:.2f}-{r[2]:.2f}] (repeat, "
+                    f"{'steady state' if steady else 'first call after a pause'})")
         print(rows[-1], flush=True)
     agree = agreement(peer, tex, uv, args.wraps)
     if agree:
@@ -289,17 +312,21 @@ def main() -> None:
     p.add_argument("--size", type=int, default=1024, help="texture side in texels")
     p.add_argument("--points", type=int, default=512, help="points per side")
     p.add_argument("--uv", default="view", choices=["view", "random"])
-    p.add_argument("--reps", type=int, default=15)
-    p.add_argument("--pause", type=float, default=0.03, help="seconds slept before every timed call")
-    p.add_argument("--settle", type=int, default=8,
-                   help="untimed calls between the pause and the timed one in the second table (0: one table)")
+    p.add_argument("--blocks", type=int, default=8, help="steady state: rounds of one block per library")
+    p.add_argument("--calls", type=int, default=8, help="steady state: back-to-back calls per block")
+    p.add_argument("--skip", type=int, default=2, help="steady state: untimed leading calls of every block")
+    p.add_argument("--reps", type=int, default=15, help="after a pause: timed rounds")
+    p.add_argument("--pause", type=float, default=0.03,
+                   help="seconds slept before every block (steady state) or timed call (after a pause)")
+    p.add_argument("--no-after-pause", dest="after_pause", action="store_false",
+                   help="only the steady-state table (and trilinear line)")
     p.add_argument("--filters", nargs="+", default=["bilinear", "bicubic"], choices=list(FILTERS))
     p.add_argument("--wraps", nargs="+", default=["repeat", "clamp", "mirror", "border"],
                    choices=["repeat", "clamp", "mirror", "border"])
     p.add_argument("--out", default=None, help="also write the table to this markdown file")
     args = p.parse_args()
     head = (f"torch {torch.__version__}, {torch.get_num_threads()} threads, texture {args.size}^2 RGB float32, "
-            f"{args.points}^2 points ({args.uv}), median of {args.reps} interleaved rounds in shuffled order; {native_paths()}")
+            f"{args.points}^2 points ({args.uv}), libraries interleaved in shuffled order; {native_paths()}")
     print("# " + head)
     rows = run(args)
     if args.out:

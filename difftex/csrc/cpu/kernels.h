@@ -124,5 +124,9 @@ bool simd_available();
 // this CPU has it.
 bool set_wide(bool enabled);
 bool wide_available();
+// Whether that sixteen-point forward writes an output of 1 MB or more with
+// non-temporal stores (same bits either way; on by default): set_stream
+// sets it and returns the previous setting, for the tests and the benchmark.
+bool set_stream(bool enabled);
 
 }  // namespace difftex

@@ -11,8 +11,9 @@ give bit-identical gradients.
 
 float32 bilinear / bicubic reads take an eight-point AVX2 path where the
 CPU has it (``set_simd``), and their forward a sixteen-point AVX-512 one
-where it has that (``set_wide``); the float32 tests run on each and on the
-scalar loop (the ``path`` fixture), and one test holds the three to each
+where it has that (``set_wide``; outputs of 1 MB or more written with
+non-temporal stores, ``set_stream``, held to the cached stores' bits); the
+float32 tests run on each and on the scalar loop (the ``path`` fixture), and one test holds the three to each
 other on the points the vector paths treat specially (group tails,
 non-finite points inside a group, huge and edge coordinates). A
 channels_last texture is read in place and gives the planar read's bits.
@@ -189,6 +190,40 @@ def test_a_channels_last_texture_is_read_in_place_with_the_planar_bits(B, Bt, C,
         assert torch.equal(out.nan_to_num(7.0), out_i.nan_to_num(7.0)), (filter, wrap)
         assert torch.equal(gt, gt_i) and torch.equal(gu, gu_i), (filter, wrap)
         assert gt_i.is_contiguous(memory_format=torch.channels_last)
+
+
+@pytest.mark.skipif(not WIDE, reason="this CPU has no AVX-512: no sixteen-point forward")
+@pytest.mark.parametrize("layout", ["planar", "channels_last"])
+@pytest.mark.parametrize("S, B, Bt", [((256, 512), 1, 1), ((200, 250), 2, 1), ((130, 700), 2, 2)], ids=str)
+def test_an_output_of_a_megabyte_or_more_is_streamed_with_the_cached_stores_bits(S, B, Bt, layout):
+    # The sixteen-point forward writes an output of 1 MB or more (here 1.5-2.2 MB) with non-temporal
+    # stores, a group's whole aligned line of a channel at a time (rows of 512 points), the rest (rows of 250
+    # and 700 points: groups across a line, a tile's tail, a NaN's group) with the cached stores: the same bits
+    # as with the switch off, at one thread and two, and the reference's values.
+    kernel = native.load()
+    before = _set_path(kernel, "wide")
+    g = torch.Generator().manual_seed(S[1])
+    tex = torch.rand(Bt, 3, 96, 80, generator=g)
+    if layout == "channels_last":
+        tex = tex.contiguous(memory_format=torch.channels_last)
+    uv = torch.rand(B, *S, 2, generator=g) * 3 - 1
+    uv[B - 1, 7, 21, 0] = float("nan")
+    opts = kernel.ReadOptions(wrap_u=WRAP_CODES["repeat"], wrap_v=WRAP_CODES["mirror"], border=0.0)
+    try:
+        for kind, filter in ((1, "bilinear"), (2, "bicubic")):
+            was = kernel.set_stream(False)
+            cached = kernel.sample(tex, uv, kind, opts)
+            kernel.set_stream(True)
+            for n in (1, 2):
+                streamed = _threads(n, lambda: kernel.sample(tex, uv, kind, opts))
+                assert torch.equal(streamed.nan_to_num(7.0), cached.nan_to_num(7.0)), (filter, n)
+            kernel.set_stream(was)
+            assert streamed.isnan().sum() == 3 and streamed[B - 1, :, 7, 21].isnan().all()
+            with use_backend("reference"), torch.no_grad():
+                ref = difftex.sample(tex, uv, filter=filter, wrap=("repeat", "mirror"))
+            torch.testing.assert_close(streamed, ref, atol=1e-5, rtol=1e-5, equal_nan=True)
+    finally:
+        _restore_path(kernel, before)
 
 
 @pytest.mark.parametrize("filter", ["bilinear", "bicubic"])
