@@ -12,7 +12,7 @@ from ..geometry import camera
 from ..geometry.interpolate import interpolate
 from ..geometry.mesh import Mesh
 from ..geometry.raster import Fragments, rasterize
-from ..texture.options import check_number
+from ..texture.options import check_number, check_stochastic
 from ..texture.sample import sample
 from ..texture.wrap import Wrap
 
@@ -86,9 +86,7 @@ class TexturedMesh(nn.Module):
         self.max_aniso = max_aniso
         self.lod_bias = lod_bias
         self.background = background
-        if isinstance(stochastic, bool) or not isinstance(stochastic, int) or stochastic < 0:
-            raise ValueError(f"stochastic: expected an int >= 0 (draws a pixel), got {stochastic!r}")
-        self.stochastic = stochastic
+        self.stochastic = check_stochastic(stochastic, filter)
         self.decorrelate = bool(decorrelate)
         self.generator = torch.Generator(device=texture.device).manual_seed(int(seed))
 

@@ -50,13 +50,60 @@ namespace {
 inline int64_t tap_count(const int64_t* pc, int64_t e) { return pc == nullptr ? 1 : (pc[e] < 1 ? 1 : pc[e]); }
 inline double tap_offset(int64_t i, int64_t N) { return (static_cast<double>(i) + 0.5) / static_cast<double>(N) - 0.5; }
 
+// One stochastic draw of point e (ReadOptions::stochastic; filters/stochastic.py is the reference): the
+// level, floor(D) + 1 with probability p = 3/4 frac(D) + 1/8 where D blends two levels (else floor(D)
+// alone), in r as one read of weight 1; the tap's offset along the axis (a probe i of N drawn uniformly,
+// o = tap_offset(i, N); 0 without counts); and the drawn level's weight in the blend over its probability,
+// w / p (scalar_t, rounded as the torch path rounds it), with its d / dD, +-1 / p. frac, p and w are
+// computed in the texture's dtype as the torch path does, so that a float32 D draws the level it draws.
+template <typename scalar_t>
+struct Draw {
+  Reads r;
+  double offset;
+  scalar_t scale;
+  double dscale;
+};
+
+template <typename scalar_t>
+DT_INLINE Draw<scalar_t> draw_of(const ReadOptions& o, int64_t e, scalar_t d, int64_t K, const int64_t* pc) {
+  Draw<scalar_t> dr;
+  const uint64_t ctr = static_cast<uint64_t>(o.first + e) * static_cast<uint64_t>(o.roles);
+  dr.offset = 0.0;
+  if (pc != nullptr) {
+    const int64_t N = tap_count(pc, e);
+    const double n = static_cast<double>(N);
+    double i = floor_capped(draw_uniform(o.seed, ctr) * n);
+    i = i > n - 1 ? n - 1 : i;
+    dr.offset = tap_offset(static_cast<int64_t>(i), N);
+  }
+  const scalar_t k0 = static_cast<scalar_t>(floor_capped(static_cast<double>(d)));
+  const scalar_t f = d - k0;
+  const scalar_t p = f > 0 ? static_cast<scalar_t>(0.75) * f + static_cast<scalar_t>(0.125) : scalar_t(0);
+  const bool upper = draw_uniform(o.seed, ctr + static_cast<uint64_t>(o.roles - 1)) < static_cast<double>(p);
+  int64_t k = static_cast<int64_t>(k0) + (upper ? 1 : 0);
+  k = k < 0 ? 0 : (k > K - 1 ? K - 1 : k);
+  dr.r.n = 1;
+  dr.r.k[0] = k;
+  dr.r.wt[0] = 1.0;
+  dr.r.dwt[0] = 0.0;
+  if (f > 0) {
+    const scalar_t pdf = upper ? p : scalar_t(1) - p;
+    dr.scale = (upper ? f : scalar_t(1) - f) / pdf;
+    dr.dscale = (upper ? 1.0 : -1.0) / static_cast<double>(pdf);
+  } else {  // an integer level, read alone: weight 1, no level derivative (stochastic.py's docstring)
+    dr.scale = 1;
+    dr.dscale = 0.0;
+  }
+  return dr;
+}
+
 // The forward over points [lo, hi); CC > 0 fixes the channel count at
 // compile time (accumulators in registers), 0 takes it at run time.
 template <typename scalar_t, int CC, bool kBorder>
 void forward_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<Level>& L,
                    const std::vector<const scalar_t*>& lp, const scalar_t* puv, const scalar_t* pd,
                    const int64_t* pc, const scalar_t* pa, scalar_t* po, int64_t M, int64_t wrap_u, int64_t wrap_v,
-                   double border, bool nearest, bool d_grad) {
+                   double border, bool nearest, bool d_grad, const ReadOptions* sto = nullptr) {
   const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
   std::vector<scalar_t> heap(CC > 0 ? 0 : C);
   scalar_t stack[CC > 0 ? CC : 1];
@@ -67,11 +114,20 @@ void forward_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<Level
       for (int64_t c = 0; c < C; ++c) po[c * M + e] = std::numeric_limits<scalar_t>::quiet_NaN();
       continue;
     }
-    Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
-    const int64_t N = tap_count(pc, e);
+    Reads r;
+    int64_t N;
+    Draw<scalar_t> dr;
+    if (sto != nullptr) {
+      dr = draw_of<scalar_t>(*sto, e, pd[e], K, pc);
+      r = dr.r;
+      N = 1;
+    } else {
+      r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
+      N = tap_count(pc, e);
+    }
     for (int64_t c = 0; c < C; ++c) acc[c] = 0.0;
     for (int64_t i = 0; i < N; ++i) {
-      double o = pc ? tap_offset(i, N) : 0.0;
+      double o = sto ? dr.offset : pc ? tap_offset(i, N) : 0.0;
       double tu = pc ? u + o * pa[2 * e] : u, tv = pc ? v + o * pa[2 * e + 1] : v;
       const Folded fu = fold(tu, wrap_u), fv = fold(tv, wrap_v);
       for (int j = 0; j < r.n; ++j) {
@@ -90,7 +146,12 @@ void forward_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<Level
         }
       }
     }
-    for (int64_t c = 0; c < C; ++c) po[c * M + e] = acc[c] / static_cast<scalar_t>(N);
+    if (sto != nullptr) {
+      // The tap, then its weight w / p: the torch path's product (tap * level_weight), the same rounding.
+      for (int64_t c = 0; c < C; ++c) po[c * M + e] = acc[c] * dr.scale;
+    } else {
+      for (int64_t c = 0; c < C; ++c) po[c * M + e] = acc[c] / static_cast<scalar_t>(N);
+    }
   }
 }
 
@@ -535,7 +596,11 @@ Tensor forward(std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis,
   auto L = shapes(levels, uv, D, axis, count);
   const int64_t C = levels[0].size(0), M = uv.size(0);
   auto out = empty({C, M}, options_of(uv));
-  const bool simd = simd_taps(uv, count, levels), simd_n = simd_levels(uv, levels) && count.numel() != 0;
+  // A stochastic draw reads one tap on a level drawn point by point: neighbouring points seldom share their
+  // level, which the eight-point paths need, so it runs the scalar loop.
+  const bool sto = opts.stochastic;
+  const bool simd = !sto && simd_taps(uv, count, levels);
+  const bool simd_n = !sto && simd_levels(uv, levels) && count.numel() != 0;
   DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_forward", [&] {
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.mutable_data_ptr<scalar_t>());
@@ -557,7 +622,7 @@ Tensor forward(std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis,
         }
 #endif
         forward_range<scalar_t, CC, kB>(lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border, nearest,
-                                        d_grad);
+                                        d_grad, sto ? &opts : nullptr);
       });
     });
   });
@@ -582,7 +647,7 @@ DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<Level>&
                               const std::vector<const scalar_t*>& lp, const scalar_t* puv, const scalar_t* pd,
                               const int64_t* pc, const scalar_t* pa, const scalar_t* pg, const Grads<scalar_t>& out,
                               int64_t gsc, int64_t gsm, int64_t wrap_u, int64_t wrap_v, double border, bool nearest,
-                              bool d_grad) {
+                              bool d_grad, const ReadOptions* sto = nullptr) {
   const int64_t C = CC > 0 ? CC : Cdyn, K = static_cast<int64_t>(L.size());
   const scalar_t bv = static_cast<scalar_t>(border);
   std::vector<scalar_t> heap(CC > 0 ? 0 : C);
@@ -590,8 +655,21 @@ DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<Level>&
   scalar_t* g = CC > 0 ? stack : heap.data();
   double u = puv[2 * e], v = puv[2 * e + 1];
   if (!std::isfinite(u) || !std::isfinite(v)) return;
-  Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
-  const int64_t N = tap_count(pc, e);
+  Reads r;
+  int64_t N;
+  Draw<scalar_t> dr;
+  if (sto != nullptr) {
+    // The forward's draw again (the same counters); the read's weight is w / p and its d / dD is +-1 / p, so
+    // the texel gradients are (g w / p) times the bilinear weights, as the torch path's product gives them.
+    dr = draw_of<scalar_t>(*sto, e, pd[e], K, pc);
+    r = dr.r;
+    r.wt[0] = static_cast<double>(dr.scale);
+    r.dwt[0] = dr.dscale;
+    N = 1;
+  } else {
+    r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
+    N = tap_count(pc, e);
+  }
   bool any = false;
   for (int64_t c = 0; c < C; ++c) {
     g[c] = pg[c * gsc + e * gsm] / static_cast<scalar_t>(N);
@@ -600,7 +678,7 @@ DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<Level>&
   if (!any) return;
   double du = 0, dv = 0, dD = 0, dax = 0, day = 0;
   for (int64_t i = 0; i < N; ++i) {
-    double o = pc ? tap_offset(i, N) : 0.0;
+    double o = sto ? dr.offset : pc ? tap_offset(i, N) : 0.0;
     double tu = pc ? u + o * pa[2 * e] : u, tv = pc ? v + o * pa[2 * e + 1] : v;
     const Folded fu = fold(tu, wrap_u), fv = fold(tv, wrap_v);
     double tdu = 0, tdv = 0;
@@ -1187,7 +1265,9 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
   Tensor guv = need_uv ? zeros({M, 2}, options_of(uv)) : Tensor();
   Tensor gD = need_D ? zeros({M}, options_of(uv)) : Tensor();
   Tensor gax = need_axis ? zeros({M, 2}, options_of(uv)) : Tensor();
-  const bool simd = simd_taps(uv, count, levels), simd_n = simd_levels(uv, levels) && count.numel() != 0;
+  const bool sto = opts.stochastic;  // the scalar loop (why: forward)
+  const bool simd = !sto && simd_taps(uv, count, levels);
+  const bool simd_n = !sto && simd_levels(uv, levels) && count.numel() != 0;
   DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_backward", [&] {
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.mutable_data_ptr<scalar_t>());
@@ -1207,6 +1287,17 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
       std::vector<double> inv_h(K);
       for (int64_t k = 0; k < K; ++k) inv_h[k] = 1.0 / static_cast<double>(L[k].h);
       auto key_of = [&](int64_t e, char* rd) {
+        if (sto) {  // one tap, at the drawn probe, on the drawn level
+          const Draw<scalar_t> dr = draw_of<scalar_t>(opts, e, pd[e], K, pc);
+          double u = puv[2 * e], v = puv[2 * e + 1];
+          if (pc) {
+            u += dr.offset * static_cast<double>(pa[2 * e]);
+            v += dr.offset * static_cast<double>(pa[2 * e + 1]);
+          }
+          const int32_t key = tap_key(bands, L, inv_h.data(), u, v, dr.r, 1, 0.0, static_cast<int>(wrap_v));
+          if (key >= 0) rd[dr.r.k[0]] = 1;
+          return key;
+        }
         const Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
         const int64_t N = tap_count(pc, e);
         const int32_t key = tap_key(bands, L, inv_h.data(), puv[2 * e], puv[2 * e + 1], r, N,
@@ -1240,7 +1331,7 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
       constexpr bool kB = decltype(border_)::value;
       auto one = [&](int64_t e) {
         backward_point<scalar_t, CC, kB>(e, C, L, lp, puv, pd, pc, pa, pg, out, gsc, gsm, wrap_u, wrap_v, border,
-                                         nearest, d_grad);
+                                         nearest, d_grad, sto ? &opts : nullptr);
       };
       // The points idx[0, n): by eight where the eight-point path takes them, else one at a time.
       auto run = [&](const int64_t* idx, int64_t n) {
