@@ -214,6 +214,33 @@ def test_the_kernel_draws_as_the_torch_path(filter, k, dtype):
     assert got[0][3].abs().max() > 0  # the level's gradient reaches uv_dx
 
 
+@pytest.mark.skipif(native.load() is None, reason="native kernels not built")
+@pytest.mark.parametrize("wrap", ["repeat", "border", ("mirror", "clamp")])
+@pytest.mark.parametrize("channels", [1, 3, 5])
+def test_the_kernels_eight_point_draws_are_its_scalar_loop(wrap, channels):
+    """float32 draws eight at a time (AVX2, where the CPU has it) give the scalar loop's bits, values and
+    gradients, whatever the levels the lanes drew."""
+    kernel = native.load()
+    tex = checker_noise_texture(64, channels=channels)
+    uv, dx, dy = grazing_plane(37, pitch_deg=25.0)
+    uv = uv * 1.3 - 0.1
+    got = []
+    for simd in (True, False):
+        before = kernel.set_simd(simd)
+        try:
+            for filter in ("trilinear", "anisotropic"):
+                t, u = tex.clone().requires_grad_(), uv.clone().requires_grad_()
+                out = sample(t, u, filter=filter, wrap=wrap, uv_dx=dx, uv_dy=dy, stochastic=1,
+                             generator=torch.Generator().manual_seed(4))
+                w = torch.linspace(-1, 2, out.numel()).view_as(out)
+                got.append([out.detach(), *torch.autograd.grad((out * w).sum(), (t, u))])
+        finally:
+            kernel.set_simd(before)
+    for a, b in zip(got[:2], got[2:]):
+        for x, y in zip(a, b):
+            assert torch.equal(x, y)
+
+
 def test_hashed_uniforms_are_splitmix64():
     """The torch int64 arithmetic gives SplitMix64's outputs (Python's unbounded ints as the reference)."""
     def splitmix(seed, i):
