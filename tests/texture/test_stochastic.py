@@ -229,14 +229,15 @@ def test_the_kernels_eight_point_draws_are_its_scalar_loop(wrap, channels):
         before = kernel.set_simd(simd)
         try:
             for filter in ("trilinear", "anisotropic"):
-                t, u = tex.clone().requires_grad_(), uv.clone().requires_grad_()
-                out = sample(t, u, filter=filter, wrap=wrap, uv_dx=dx, uv_dy=dy, stochastic=1,
-                             generator=torch.Generator().manual_seed(4))
-                w = torch.linspace(-1, 2, out.numel()).view_as(out)
-                got.append([out.detach(), *torch.autograd.grad((out * w).sum(), (t, u))])
+                for d_grad in (False, True):  # with it: the level's and the axis's gradients too
+                    t, u, d = tex.clone().requires_grad_(), uv.clone().requires_grad_(), dx.clone().requires_grad_(d_grad)
+                    out = sample(t, u, filter=filter, wrap=wrap, uv_dx=d, uv_dy=dy, stochastic=1,
+                                 generator=torch.Generator().manual_seed(4))
+                    w = torch.linspace(-1, 2, out.numel()).view_as(out)
+                    got.append([out.detach(), *torch.autograd.grad((out * w).sum(), (t, u, d) if d_grad else (t, u))])
         finally:
             kernel.set_simd(before)
-    for a, b in zip(got[:2], got[2:]):
+    for a, b in zip(got[:4], got[4:]):
         for x, y in zip(a, b):
             assert torch.equal(x, y)
 

@@ -263,6 +263,11 @@ def stochastic_trilinear(levels: Levels, uv: Tensor, D: Tensor, u: Tensor | Stre
     if isinstance(u, Stream):
         if native.kernel(uv) is not None:
             lv = build_levels(levels.texture, len(levels)) if isinstance(levels, TexturePyramid) else list(levels)
+            if count is not None and not bool((count > 1).any()):
+                # One probe everywhere (a round footprint): offset 0, so the kernel skips the probe's uniform
+                # and the axis (whose gradient is then 0, as anisotropic_taps's None gives it). The level keeps
+                # its uniform (the last of u.roles): the same draws.
+                axis = count = None
             return _NativeDraw.apply(uv, D, axis, count, (wrap_u, wrap_v, float(border), u), *lv)
         u = u.uniforms(uv.shape[0], uv.device)
     if count is not None:

@@ -1307,6 +1307,230 @@ __attribute__((target("avx2,fma"))) int64_t backward_range8(const int64_t* idx, 
   return end;
 }
 
+// Eight stochastic draws' backward (float32, points e[0..8) in the banded order): the draws and tap positions
+// point by point (place_draw's), the taps of each drawn level placed in vectors (level8: the scalar
+// placement's bits) and merged lane by lane into one set of offsets from the first level's texels where the
+// two levels lie within int32 offsets of each other (prepare_draws8's merge); vec is false where a uv is not
+// finite, the eight drew three levels or the offsets do not fit: those go through backward_draw.
+struct BackDraw8 {
+  bool vec;
+  int64_t k[2];
+  int32_t jr[8];          // each lane's level (0 or 1)
+  Quad8 t[2];             // each level's taps (the scatter's offsets into that level's gradient)
+  Quad8 m;                // the lanes' taps as offsets from lp[k[0]] (the gathers)
+  __m256i plane;          // each lane's channel stride
+  __m256 fx, fy, scale;
+  __m256d sx[2], sy[2], w[2], h[2], wt[2], dscale[2], offset[2];
+};
+
+// A merged offset (from the first level's texels) back to one on the lane's own level jr.
+inline int32_t idx_of_level(int32_t merged, int32_t jr, int64_t diff) {
+  return jr ? static_cast<int32_t>(merged - diff) : merged;
+}
+
+template <int CC>
+DT_AVX2 void prepare_back_draws8(const int64_t* e, int64_t Cdyn, const std::vector<Level>& L,
+                                 const std::vector<const float*>& lp, const float* puv, const float* pd,
+                                 const int64_t* pc, const float* pa, const Grads<float>& out, int64_t wrap_u,
+                                 int64_t wrap_v, const ReadOptions& o, BackDraw8& g) {
+  const int64_t C = CC > 0 ? CC : Cdyn;
+  alignas(32) double u[8], v[8], wt[8], ds[8], off[8];
+  alignas(32) float sc[8];
+  int64_t kk[8];
+  g.vec = false;
+  const int64_t K = static_cast<int64_t>(L.size());
+  for (int j = 0; j < 8; ++j) {  // place_draw's draw and tap position; the taps are placed in vectors below
+    const int64_t p = e[j];
+    const double pu = puv[2 * p], pv = puv[2 * p + 1];
+    if (!std::isfinite(pu) || !std::isfinite(pv)) return;
+    const Draw<float> dr = draw_of<float>(o, p, pd[p], K, pc);
+    kk[j] = dr.r.k[0];
+    sc[j] = dr.scale;
+    wt[j] = static_cast<double>(dr.scale);
+    ds[j] = dr.dscale;
+    off[j] = dr.offset;
+    u[j] = pc ? pu + dr.offset * pa[2 * p] : pu;
+    v[j] = pc ? pv + dr.offset * pa[2 * p + 1] : pv;
+  }
+  g.k[0] = g.k[1] = kk[0];
+  for (int j = 1; j < 8; ++j) g.k[1] = kk[j] != kk[0] ? kk[j] : g.k[1];
+  alignas(32) int32_t sel[8];
+  for (int j = 0; j < 8; ++j) {
+    if (kk[j] != g.k[0] && kk[j] != g.k[1]) return;
+    g.jr[j] = kk[j] != g.k[0];
+    sel[j] = -g.jr[j];
+  }
+  const int64_t diff = lp[g.k[1]] - lp[g.k[0]], p0 = L[g.k[0]].plane, p1 = L[g.k[1]].plane;
+  const int64_t lo = std::min<int64_t>(0, diff), hi = std::max<int64_t>(C * p0, diff + C * p1);
+  if (!(lo > -(int64_t(1) << 31) && hi < (int64_t(1) << 31))) return;
+  Level8 a[2];
+  level8(u, v, L[g.k[0]], wrap_u, wrap_v, a[0]);
+  if (g.k[1] != g.k[0]) level8(u, v, L[g.k[1]], wrap_u, wrap_v, a[1]);
+  else a[1] = a[0];
+  const __m256i s = _mm256_load_si256(reinterpret_cast<const __m256i*>(sel));
+  const __m256 sf = _mm256_castsi256_ps(s);
+  const __m256i shift = _mm256_and_si256(s, _mm256_set1_epi32(static_cast<int32_t>(diff)));
+  for (int q = 0; q < 4; ++q) {
+    g.t[0].idx[q] = a[0].t.idx[q], g.t[1].idx[q] = a[1].t.idx[q];
+    g.t[0].in[q] = a[0].t.in[q], g.t[1].in[q] = a[1].t.in[q];
+    g.m.idx[q] = _mm256_add_epi32(_mm256_blendv_epi8(a[0].t.idx[q], a[1].t.idx[q], s), shift);
+    g.m.in[q] = _mm256_blendv_epi8(a[0].t.in[q], a[1].t.in[q], s);
+  }
+  g.plane = _mm256_blendv_epi8(_mm256_set1_epi32(static_cast<int32_t>(p0)), _mm256_set1_epi32(static_cast<int32_t>(p1)), s);
+  {  // the lines each point reads and writes: both rows of its tap, every channel
+    alignas(32) int32_t r0[8], r1[8];
+    _mm256_store_si256(reinterpret_cast<__m256i*>(r0), g.m.idx[0]);
+    _mm256_store_si256(reinterpret_cast<__m256i*>(r1), g.m.idx[2]);
+    const float* base = lp[g.k[0]];
+    for (int j = 0; j < 8; ++j) {
+      const int64_t plane = L[kk[j]].plane;
+      float* gk = out.gp[kk[j]];
+      const int32_t a0 = idx_of_level(r0[j], g.jr[j], diff), a1 = idx_of_level(r1[j], g.jr[j], diff);
+      for (int64_t c = 0; c < C; ++c) {
+        DT_PREFETCH(base + r0[j] + c * plane, false);
+        DT_PREFETCH(base + r1[j] + c * plane, false);
+        if (gk != nullptr) {
+          DT_PREFETCH(gk + a0 + c * plane, true);
+          DT_PREFETCH(gk + a1 + c * plane, true);
+        }
+      }
+    }
+  }
+  g.fx = _mm256_blendv_ps(a[0].fx, a[1].fx, sf);
+  g.fy = _mm256_blendv_ps(a[0].fy, a[1].fy, sf);
+  g.scale = _mm256_load_ps(sc);
+  const double w0 = static_cast<double>(L[g.k[0]].w), w1 = static_cast<double>(L[g.k[1]].w);
+  const double h0 = static_cast<double>(L[g.k[0]].h), h1 = static_cast<double>(L[g.k[1]].h);
+  for (int hh = 0; hh < 2; ++hh) {
+    alignas(32) int64_t mk[4];  // the lanes on the second level, as 64-bit masks
+    for (int j = 0; j < 4; ++j) mk[j] = sel[4 * hh + j] ? -1 : 0;
+    const __m256d md = _mm256_castsi256_pd(_mm256_load_si256(reinterpret_cast<const __m256i*>(mk)));
+    g.sx[hh] = _mm256_blendv_pd(a[0].sx[hh], a[1].sx[hh], md);
+    g.sy[hh] = _mm256_blendv_pd(a[0].sy[hh], a[1].sy[hh], md);
+    g.w[hh] = _mm256_blendv_pd(_mm256_set1_pd(w0), _mm256_set1_pd(w1), md);
+    g.h[hh] = _mm256_blendv_pd(_mm256_set1_pd(h0), _mm256_set1_pd(h1), md);
+    g.wt[hh] = _mm256_load_pd(wt + 4 * hh);
+    g.dscale[hh] = _mm256_load_pd(ds + 4 * hh);
+    g.offset[hh] = _mm256_load_pd(off + 4 * hh);
+  }
+  g.vec = true;
+}
+
+// The backward of a prepared group: backward_draw's arithmetic lane by lane (the same bits), the texel
+// gradients scattered point after point in the group's order, as backward_draw adds them.
+template <int CC, bool kBorder>
+__attribute__((target("avx2,fma"))) void backward_draws8(const BackDraw8& grp, const int64_t* e, int64_t Cdyn,
+                                                         const std::vector<Level>& L,
+                                                         const std::vector<const float*>& lp, const float* pg,
+                                                         const Grads<float>& out, int64_t gsc, int64_t gsm,
+                                                         double border) {
+  const int64_t C = CC > 0 ? CC : Cdyn;
+  constexpr int CMAX = CC > 0 ? CC : 1;
+  std::vector<float> gheap(CC > 0 ? 0 : 8 * C + 7);
+  __m256 gstack[CMAX];
+  __m256* g = CC > 0 ? gstack
+                     : reinterpret_cast<__m256*>((reinterpret_cast<uintptr_t>(gheap.data()) + 31) & ~uintptr_t{31});
+  const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f);
+  __m256 any = zero;
+  for (int64_t c = 0; c < C; ++c) {
+    alignas(32) float gc[8];
+    for (int j = 0; j < 8; ++j) gc[j] = pg[c * gsc + e[j] * gsm];
+    g[c] = _mm256_load_ps(gc);
+    any = _mm256_or_ps(any, _mm256_cmp_ps(g[c], zero, _CMP_NEQ_UQ));
+  }
+  const int live = _mm256_movemask_ps(any);
+  if (live == 0) return;
+  const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
+  const __m256 fx = grp.fx, fy = grp.fy, gx = _mm256_sub_ps(one, fx), gy = _mm256_sub_ps(one, fy);
+  const __m256 w[4] = {_mm256_mul_ps(gx, gy), _mm256_mul_ps(fx, gy), _mm256_mul_ps(gx, fy), _mm256_mul_ps(fx, fy)};
+  const float* base = lp[grp.k[0]];
+  std::vector<float> sheap(CC > 0 ? 0 : C * 32);
+  alignas(32) float sstack[CMAX][4][8];
+  float(*share)[4][8] = CC > 0 ? sstack : reinterpret_cast<float(*)[4][8]>(sheap.data());
+  __m256 sx = zero, sy = zero, sv = zero;
+  __m256i off = _mm256_setzero_si256();
+  for (int64_t c = 0; c < C; ++c, off = _mm256_add_epi32(off, grp.plane)) {
+    __m256 t[4];
+    for (int q = 0; q < 4; ++q) {
+      const __m256i idx = _mm256_add_epi32(grp.m.idx[q], off);
+      t[q] = kBorder ? _mm256_mask_i32gather_ps(bv, base, idx, _mm256_castsi256_ps(grp.m.in[q]), 4)
+                     : _mm256_i32gather_ps(base, idx, 4);
+    }
+    sx = _mm256_add_ps(sx, _mm256_mul_ps(g[c], _mm256_add_ps(_mm256_mul_ps(gy, _mm256_sub_ps(t[1], t[0])),
+                                                             _mm256_mul_ps(fy, _mm256_sub_ps(t[3], t[2])))));
+    sy = _mm256_add_ps(sy, _mm256_mul_ps(g[c], _mm256_add_ps(_mm256_mul_ps(gx, _mm256_sub_ps(t[2], t[0])),
+                                                             _mm256_mul_ps(fx, _mm256_sub_ps(t[3], t[1])))));
+    __m256 val = _mm256_add_ps(_mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(w[0], t[0]), _mm256_mul_ps(w[1], t[1])),
+                                             _mm256_mul_ps(w[2], t[2])), _mm256_mul_ps(w[3], t[3]));
+    sv = _mm256_add_ps(sv, _mm256_mul_ps(g[c], val));
+    const __m256 gw = _mm256_mul_ps(g[c], grp.scale);
+    for (int q = 0; q < 4; ++q) _mm256_storeu_ps(share[c][q], _mm256_mul_ps(gw, w[q]));  // the heap: unaligned
+  }
+  alignas(32) int32_t idx[2][4][8], in[2][4][8];
+  for (int jr = 0; jr < 2; ++jr)
+    for (int q = 0; q < 4; ++q) {
+      _mm256_store_si256(reinterpret_cast<__m256i*>(idx[jr][q]), grp.t[jr].idx[q]);
+      if (kBorder) _mm256_store_si256(reinterpret_cast<__m256i*>(in[jr][q]), grp.t[jr].in[q]);
+    }
+  for (int j = 0; j < 8; ++j) {
+    if (!(live >> j & 1)) continue;
+    const int jr = grp.jr[j];
+    float* gk = out.gp[grp.k[jr]];
+    if (gk == nullptr) continue;
+    const int64_t plane = L[grp.k[jr]].plane;
+    for (int64_t c = 0; c < C; ++c) {
+      float* gq = gk + c * plane;
+      for (int q = 0; q < 4; ++q)
+        if (!kBorder || in[jr][q][j]) gq[idx[jr][q][j]] += share[c][q][j];
+    }
+  }
+  alignas(32) double ou[8], ov[8], oD[8], oau[8], oav[8];
+  const __m256d zd = _mm256_setzero_pd();
+  for (int hh = 0; hh < 2; ++hh) {
+    const __m128 lo_x = hh == 0 ? _mm256_castps256_ps128(sx) : _mm256_extractf128_ps(sx, 1);
+    const __m128 lo_y = hh == 0 ? _mm256_castps256_ps128(sy) : _mm256_extractf128_ps(sy, 1);
+    const __m128 lo_v = hh == 0 ? _mm256_castps256_ps128(sv) : _mm256_extractf128_ps(sv, 1);
+    const __m256d du = _mm256_add_pd(zd, _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(grp.wt[hh], _mm256_cvtps_pd(lo_x)),
+                                                                     grp.sx[hh]), grp.w[hh]));
+    const __m256d dv = _mm256_add_pd(zd, _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(grp.wt[hh], _mm256_cvtps_pd(lo_y)),
+                                                                     grp.sy[hh]), grp.h[hh]));
+    const __m256d dD = _mm256_add_pd(zd, _mm256_mul_pd(grp.dscale[hh], _mm256_cvtps_pd(lo_v)));
+    _mm256_store_pd(ou + 4 * hh, _mm256_add_pd(zd, du));
+    _mm256_store_pd(ov + 4 * hh, _mm256_add_pd(zd, dv));
+    _mm256_store_pd(oD + 4 * hh, dD);
+    _mm256_store_pd(oau + 4 * hh, _mm256_add_pd(zd, _mm256_mul_pd(grp.offset[hh], du)));
+    _mm256_store_pd(oav + 4 * hh, _mm256_add_pd(zd, _mm256_mul_pd(grp.offset[hh], dv)));
+  }
+  for (int j = 0; j < 8; ++j) {
+    if (!(live >> j & 1)) continue;
+    if (out.uv) out.uv[2 * e[j]] = static_cast<float>(ou[j]), out.uv[2 * e[j] + 1] = static_cast<float>(ov[j]);
+    if (out.D) out.D[e[j]] = static_cast<float>(oD[j]);
+    if (out.axis) out.axis[2 * e[j]] = static_cast<float>(oau[j]), out.axis[2 * e[j] + 1] = static_cast<float>(oav[j]);
+  }
+}
+
+// The stochastic backward of the points idx[0, n) by groups_of_eight, as many as fit (returned); groups
+// prepare_back_draws8 leaves to the scalar loop go point by point through one, in their place in the order.
+template <int CC, bool kBorder, typename One>
+__attribute__((target("avx2,fma"))) int64_t backward_draws_range8(
+    const int64_t* idx, int64_t n, int64_t C, const std::vector<Level>& L, const std::vector<const float*>& lp,
+    const float* puv, const float* pd, const int64_t* pc, const float* pa, const float* pg, const Grads<float>& out,
+    int64_t gsc, int64_t gsm, int64_t wrap_u, int64_t wrap_v, double border, const ReadOptions& opts, One&& one) {
+  const int64_t end = n / 8 * 8;
+  groups_of_eight<BackDraw8>(
+      0, end,
+      [&](int64_t s0, BackDraw8& g) __attribute__((target("avx2,fma"))) {
+        prepare_back_draws8<CC>(idx + s0, C, L, lp, puv, pd, pc, pa, out, wrap_u, wrap_v, opts, g);
+      },
+      [&](const BackDraw8& g, int64_t s0) __attribute__((target("avx2,fma"))) {
+        if (g.vec)
+          backward_draws8<CC, kBorder>(g, idx + s0, C, L, lp, pg, out, gsc, gsm, border);
+        else
+          for (int j = 0; j < 8; ++j) one(idx[s0 + j]);
+      });
+  return end;
+}
+
 constexpr int64_t kMaxTaps8 = 16;  // the most taps a point of backward_taps8 (its held scatter: 16 KB at C = 4)
 
 // The backward of eight points e[0..8) with N_j taps each (anisotropic, auto: count pc, axis pa; float32, the
@@ -1561,7 +1785,8 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
   Tensor guv = need_uv ? zeros({M, 2}, options_of(uv)) : Tensor();
   Tensor gD = need_D ? zeros({M}, options_of(uv)) : Tensor();
   Tensor gax = need_axis ? zeros({M, 2}, options_of(uv)) : Tensor();
-  const bool sto = opts.stochastic;  // the scalar loop (why: forward)
+  const bool sto = opts.stochastic;  // backward_draw(s8) (why: forward)
+  const bool sto_simd = sto && simd_levels(uv, levels);
   const bool simd = !sto && simd_taps(uv, count, levels);
   const bool simd_n = !sto && simd_levels(uv, levels) && count.numel() != 0;
   DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_backward", [&] {
@@ -1582,18 +1807,10 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
       bands = scale_bands(L[0].h);
       std::vector<double> inv_h(K);
       for (int64_t k = 0; k < K; ++k) inv_h[k] = 1.0 / static_cast<double>(L[k].h);
+      // A stochastic draw writes rows of one of the levels and probes the deterministic filter reads (its
+      // level, floor(D) or floor(D) + 1, and its probe on the axis): the deterministic key covers them, and
+      // costs no draw (measured: drawing each point again for its key was as long as its backward).
       auto key_of = [&](int64_t e, char* rd) {
-        if (sto) {  // one tap, at the drawn probe, on the drawn level
-          const Draw<scalar_t> dr = draw_of<scalar_t>(opts, e, pd[e], K, pc);
-          double u = puv[2 * e], v = puv[2 * e + 1];
-          if (pc) {
-            u += dr.offset * static_cast<double>(pa[2 * e]);
-            v += dr.offset * static_cast<double>(pa[2 * e + 1]);
-          }
-          const int32_t key = tap_key(bands, L, inv_h.data(), u, v, dr.r, 1, 0.0, static_cast<int>(wrap_v));
-          if (key >= 0) rd[dr.r.k[0]] = 1;
-          return key;
-        }
         const Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
         const int64_t N = tap_count(pc, e);
         const int32_t key = tap_key(bands, L, inv_h.data(), puv[2 * e], puv[2 * e + 1], r, N,
@@ -1605,7 +1822,7 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
       std::vector<char> read;
 #if DT_HAVE_AVX2
       if constexpr (std::is_same_v<scalar_t, float>) {
-        if ((simd || simd_n) && wrap_v != MIRROR && bands.scales > 0) {
+        if ((simd || simd_n || sto_simd) && wrap_v != MIRROR && bands.scales > 0) {
           std::vector<double> hd(K);
           for (int64_t k = 0; k < K; ++k) hd[k] = static_cast<double>(L[k].h);
           read = band_key_ranges(M, K, keys, [&](int64_t lo, int64_t hi, int32_t* out, char* rd) {
@@ -1631,6 +1848,21 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
       };
       // The points idx[0, n): by eight where the eight-point path takes them, else one at a time.
       auto run = [&](const int64_t* idx, int64_t n) {
+#if DT_HAVE_AVX2
+        if constexpr (std::is_same_v<scalar_t, float>) {
+          if (sto_simd) {
+            auto one_draw = [&](int64_t e) {
+              Placed<scalar_t> q;
+              place_draw(opts, e, L, puv, pd, pc, pa, wrap_u, wrap_v, q);
+              backward_draw<scalar_t, CC, kB>(q, e, C, L, lp, pg, out, gsc, gsm, border);
+            };
+            const int64_t end = backward_draws_range8<CC, kB>(idx, n, C, L, lp, puv, pd, pc, pa, pg, out, gsc, gsm,
+                                                              wrap_u, wrap_v, border, opts, one_draw);
+            for (int64_t i = end; i < n; ++i) one_draw(idx[i]);
+            return;
+          }
+        }
+#endif
         if (sto) {  // placed a block ahead and prefetched (forward_draws)
           Placed<scalar_t> blk[2][kDrawBlock];
           auto fill = [&](int64_t i0, Placed<scalar_t>* q) {
