@@ -52,7 +52,10 @@ class TexturedMesh(nn.Module):
         seed: seeds the draws' generator.
 
     Raises TypeError naming the argument for a texture that is not float32 /
-    float64 or a background that is not a number, ValueError for shapes.
+    float64, a background that is not a number or a ``stochastic`` that is
+    not an int, ValueError for shapes, a negative ``stochastic`` or one with
+    a filter that has no stochastic mode (``sample``'s check,
+    ``difftex.texture.options.check_stochastic``).
 
     ``forward(mvp, resolution)`` renders images; gradients reach the texture,
     the uv (when learned) and ``mvp`` (through the barycentrics).
