@@ -12,7 +12,7 @@ from ..geometry import camera
 from ..geometry.interpolate import interpolate
 from ..geometry.mesh import Mesh
 from ..geometry.raster import Fragments, rasterize
-from ..texture.options import check_number
+from ..texture.options import check_number, check_stochastic
 from ..texture.sample import sample
 from ..texture.wrap import Wrap
 
@@ -52,7 +52,10 @@ class TexturedMesh(nn.Module):
         seed: seeds the draws' generator.
 
     Raises TypeError naming the argument for a texture that is not float32 /
-    float64 or a background that is not a number, ValueError for shapes.
+    float64, a background that is not a number or a ``stochastic`` that is
+    not an int, ValueError for shapes, a negative ``stochastic`` or one with
+    a filter that has no stochastic mode (``sample``'s check,
+    ``difftex.texture.options.check_stochastic``).
 
     ``forward(mvp, resolution)`` renders images; gradients reach the texture,
     the uv (when learned) and ``mvp`` (through the barycentrics).
@@ -86,9 +89,7 @@ class TexturedMesh(nn.Module):
         self.max_aniso = max_aniso
         self.lod_bias = lod_bias
         self.background = background
-        if isinstance(stochastic, bool) or not isinstance(stochastic, int) or stochastic < 0:
-            raise ValueError(f"stochastic: expected an int >= 0 (draws a pixel), got {stochastic!r}")
-        self.stochastic = stochastic
+        self.stochastic = check_stochastic(stochastic, filter)
         self.decorrelate = bool(decorrelate)
         self.generator = torch.Generator(device=texture.device).manual_seed(int(seed))
 

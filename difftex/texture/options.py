@@ -5,6 +5,7 @@ import math
 import numbers
 from typing import Union
 
+import torch
 from torch import Tensor
 
 from .._checks import check_float, check_same, describe
@@ -30,6 +31,39 @@ def check_filter(filter: object) -> str:
     if not isinstance(filter, str) or filter not in FILTERS:
         raise ValueError(f"filter: unknown filter {filter!r}; expected one of {FILTERS}")
     return filter
+
+
+# The filters with a stochastic mode (``sample(..., stochastic=k)``, filters/stochastic.py).
+STOCHASTIC_FILTERS = ("bilinear", "bicubic", "trilinear", "anisotropic", "ewa")
+
+
+def check_stochastic(stochastic: object, filter: str | None = None) -> int:
+    """The number of draws a pixel (0: the deterministic filter) of ``stochastic`` (True is 1).
+
+    The one check of ``sample``'s and ``TexturedMesh``'s ``stochastic``:
+    TypeError where it is not an int, ValueError where it is negative or,
+    ``filter`` given, where k >= 1 and that filter has no stochastic mode.
+    """
+    if isinstance(stochastic, bool):
+        stochastic = int(stochastic)
+    if not isinstance(stochastic, numbers.Integral):
+        raise TypeError(f"stochastic: expected an int >= 0 (draws a pixel), got {type(stochastic).__name__}")
+    if stochastic < 0:
+        raise ValueError(f"stochastic: expected an int >= 0 (draws a pixel), got {stochastic}")
+    if stochastic and filter is not None and filter not in STOCHASTIC_FILTERS:
+        raise ValueError(f"stochastic: filter {filter!r} has no stochastic mode; expected one of "
+                         f"{STOCHASTIC_FILTERS}")
+    return int(stochastic)
+
+
+def check_generator(generator: object, like: Tensor) -> None:
+    """``generator`` must be None or a ``torch.Generator`` on ``like``'s device type (TypeError / ValueError)."""
+    if generator is None:
+        return
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
+    if generator.device.type != like.device.type:
+        raise ValueError(f"generator: on {generator.device}, expected uv's device type {like.device.type}")
 
 
 def check_number(name: str, value: object, minimum: float, maximum: float = math.inf) -> float:

@@ -13,12 +13,11 @@ from .filters.ewa import ewa_points
 from .filters.ripmap import ripmap_points
 from .filters.sat import sat_points
 from .filters.separable import separable_sample
-from .filters.stochastic import (STOCHASTIC_FILTERS, stochastic_ewa, stochastic_separable, stochastic_trilinear,
-                                 uniforms)
+from .filters.stochastic import Stream, stochastic_ewa, stochastic_separable, stochastic_trilinear, stream
 from .filters.trilinear import Levels, TexturePyramid, trilinear_points
 from .lod import ellipse, footprint
 from .options import (BOX_FILTERS, DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_bias, check_filter,
-                      check_number)
+                      check_generator, check_number, check_stochastic)
 from .pyramid.mipmap import Mipmap, level_count, mipmap
 from .pyramid.ripmap import Ripmap, check_ripmap
 from .taps import levels_read, taps
@@ -157,7 +156,9 @@ def sample(
     max_aniso = check_number("max_aniso", max_aniso, 1, MAX_ANISO)
     border_value = check_number("border_value", border_value, -math.inf)
     tolerance = check_number("tolerance", tolerance, 0)
-    draws = _check_stochastic(stochastic, generator, filter, uv)
+    draws = check_stochastic(stochastic, filter)
+    if draws:
+        check_generator(generator, uv)
     _, Ho, Wo, _ = uv.shape
     derivs = _check_derivatives(filter, uv, texture, uv_dx, uv_dy)
     bias = check_bias(lod_bias, uv, "uv", texture, "texture")
@@ -172,42 +173,21 @@ def sample(
         # An empty image: nothing to read, but the result stays in the inputs' graph.
         parts = [t for t in (texture, uv, *derivs, bias) if isinstance(t, Tensor)]
         return sum(t.reshape(-1)[:0].reshape(B, C, Ho, Wo) for t in parts)
-    u = None if not draws else uniforms(filter, B * Ho * Wo, draws, generator, uv.device)
+    u = stream(filter, generator, uv.device) if draws else None
     if filter in MIP_FILTERS:
         if pyramid is None:
             pyramid = texture
         return _sample_mip(pyramid, uv, derivs[0], derivs[1], bias, B, filter, max_aniso, tolerance,
-                           wrap_u, wrap_v, border_value, u)
+                           wrap_u, wrap_v, border_value, u, draws)
     if u is not None:
         # k draws of each pixel as k neighbouring points, averaged.
         pts = uv.expand(B, -1, -1, -1).reshape(B, Ho * Wo, 2)
         pts = pts if draws == 1 else pts.repeat_interleave(draws, 1)
         out = stochastic_separable(texture, pts, SEPARABLE[filter], wrap_u, wrap_v, border_value,
-                                   u.view(B, Ho * Wo * draws, -1))
+                                   u.uniforms(B * Ho * Wo * draws, uv.device).view(B, Ho * Wo * draws, -1))
         return out.view(B, C, Ho, Wo) if draws == 1 else out.view(B, C, Ho, Wo, draws).mean(-1)
     return separable_sample(texture, uv if uv.shape[0] == B else uv.expand(B, -1, -1, -1), SEPARABLE[filter],
                             wrap_u, wrap_v, border_value)
-
-
-def _check_stochastic(stochastic: object, generator: object, filter: str, uv: Tensor) -> int:
-    """The number of draws a pixel (0: deterministic); TypeError / ValueError naming the argument."""
-    if isinstance(stochastic, bool):
-        stochastic = int(stochastic)
-    if not isinstance(stochastic, numbers.Integral):
-        raise TypeError(f"stochastic: expected an int >= 0 (draws a pixel), got {type(stochastic).__name__}")
-    if stochastic < 0:
-        raise ValueError(f"stochastic: expected an int >= 0 (draws a pixel), got {stochastic}")
-    if not stochastic:
-        return 0
-    if filter not in STOCHASTIC_FILTERS:
-        raise ValueError(f"stochastic: filter {filter!r} has no stochastic mode; expected one of "
-                         f"{STOCHASTIC_FILTERS}")
-    if generator is not None:
-        if not isinstance(generator, torch.Generator):
-            raise TypeError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
-        if generator.device.type != uv.device.type:
-            raise ValueError(f"generator: on {generator.device}, expected uv's device type {uv.device.type}")
-    return int(stochastic)
 
 
 def _check_derivatives(filter: str, uv: Tensor, texture: Tensor, uv_dx: object, uv_dy: object) -> list[Tensor]:
@@ -230,14 +210,15 @@ def _check_derivatives(filter: str, uv: Tensor, texture: Tensor, uv_dx: object, 
 
 def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy: Tensor,
                 bias: Union[float, Tensor], B: int, filter: str, max_aniso: float, tolerance: float,
-                wrap_u: str, wrap_v: str, border: float, u: Optional[Tensor] = None) -> Tensor:
+                wrap_u: str, wrap_v: str, border: float, u: Optional[Stream] = None,
+                draws: int = 1) -> Tensor:
     """The mip filters on flat point lists; one pass per texture of the batch.
 
     A plain texture's pyramid is built only as deep as its points read (the
     same values and gradients as the full chain; a view that only magnifies
     builds none): by the reading node of the bilinear-tap filters
     (``TexturePyramid``), here for EWA, which reads the full chain.
-    With ``u`` ([B * Ho * Wo, k, R] uniforms, ``filters.stochastic.uniforms``) the stochastic filter:
+    With ``u`` (the call's ``filters.stochastic.Stream``) the stochastic filter, ``draws`` (k) a point:
     each point becomes k neighbouring points, one draw each, averaged.
     """
     base = pyramid.levels[0] if isinstance(pyramid, Mipmap) else pyramid.base if isinstance(pyramid, Ripmap) \
@@ -287,14 +268,16 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
                                 axis=None if axis is None else axis[sl], count=None if count is None else count[sl])
 
     def _run_stochastic(lv: Levels, sl: slice) -> Tensor:
-        k = u.shape[1]
+        k = draws
         # k draws of a point: k neighbouring points (one draw: the points as they are).
         rep = (lambda t: t[sl]) if k == 1 else (lambda t: t[sl].repeat_interleave(k, 0))  # noqa: E731
-        uk = u[sl].reshape(-1, u.shape[2])
+        first = (sl.start or 0) * k
+        uk = u.at(first)
         if filter == "ewa":
             b = rep(bias) if isinstance(bias, Tensor) and bias.dim() == 1 else bias
+            n = (pts.shape[0] if sl.stop is None else sl.stop) * k - first
             out = stochastic_ewa(lv, rep(pts), type(fp)(*map(rep, fp)), type(ell)(*map(rep, ell)), b, max_aniso,
-                                 wrap_u, wrap_v, border, uk)
+                                 wrap_u, wrap_v, border, uk.uniforms(n, pts.device))
         else:
             out = stochastic_trilinear(lv, rep(pts), rep(D), uk, wrap_u, wrap_v, border,
                                        None if axis is None else rep(axis), None if count is None else rep(count))

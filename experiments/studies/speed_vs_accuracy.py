@@ -27,7 +27,9 @@ anti-aliasing is not what is measured).
 
 Methods: difftex nearest / bilinear / bicubic (level 0), trilinear,
 anisotropic (max_aniso 2, 4, 8, 16), EWA, and "auto", "ripmap" and "sat"
-where the installed difftex has them; peers: ``F.grid_sample`` bilinear at one sample a pixel and
+where the installed difftex has them; stochastic trilinear, anisotropic 8
+and EWA (``<filter>-sto<k>``, ``sample(..., stochastic=k)``) with one draw
+a pixel and the means of 4 and 16 (``--no-stochastic`` leaves them out); peers: ``F.grid_sample`` bilinear at one sample a pixel and
 at 2x2, 4x4 and 8x8 supersampled uv (box-averaged), and kornia's
 ``remap(normalized_coordinates=True, align_corners=False)``.  The peers have
 no repeat mode: along a repeating axis the texture is padded by one texel
@@ -92,14 +94,25 @@ except Exception:  # pragma: no cover - depends on the environment
 # --------------------------------------------------------------------------
 
 
-def method_names(ss_rates=(2, 4, 8)) -> list[str]:
-    """Every method of the experiment; "auto", "ripmap" and "sat" only where difftex.sample has them."""
+# Stochastic texture filtering (issue 41 point 3): each of these filters with k draws a pixel, k = 1 (the
+# PSNR of one draw: what a renderer that filters after shading sees per frame) and the means of 4 and 16.
+STOCHASTIC = ("trilinear", "anisotropic-8", "ewa")
+DRAWS = (1, 4, 16)
+# The draws' generator: seeded once a run, so that a run's images repeat.
+_GENERATOR = torch.Generator().manual_seed(0)
+
+
+def method_names(ss_rates=(2, 4, 8), stochastic: bool = True) -> list[str]:
+    """Every method of the experiment; "auto", "ripmap" and "sat" only where difftex.sample has them, the
+    stochastic ones ("<filter>-sto<k>") where it has ``stochastic`` and ``stochastic`` is set."""
     names = ["nearest", "bilinear", "bicubic", "trilinear"]
     names += [f"anisotropic-{a}" for a in (2, 4, 8, 16)]
     names += ["ewa"]
     if "auto" in getattr(_sample_mod, "FILTERS", ()):
         names.append("auto")
     names += [f for f in ("ripmap", "sat") if f in getattr(_sample_mod, "FILTERS", ())]
+    if stochastic and hasattr(_sample_mod, "check_stochastic"):
+        names += [f"{f}-sto{k}" for f in STOCHASTIC for k in DRAWS]
     names += ["grid_sample"] + [f"grid_sample-ss{n}x{n}" for n in ss_rates] + ["kornia"]
     return names
 
@@ -108,6 +121,12 @@ def make_method(name: str, scene: Scene, tex: Tensor, uv: Tensor, uv_ss: dict[in
     """A closure that renders ``scene`` with ``name`` from the leaf tensors given (for gradients)."""
     w = scene.wrap
     dx, dy = scene.uv_dx, scene.uv_dy
+    if "-sto" in name:
+        base, k = name.rsplit("-sto", 1)
+        f, _, a = base.partition("-")
+        kw = dict(max_aniso=int(a)) if a else {}
+        return lambda: difftex.sample(tex, uv, filter=f, wrap=w, uv_dx=dx, uv_dy=dy, stochastic=int(k),
+                                      generator=_GENERATOR, **kw)
     if name in ("nearest", "bilinear", "bicubic"):
         return lambda: difftex.sample(tex, uv, filter=name, wrap=w)
     if name in ("trilinear", "ewa", "auto", "ripmap", "sat"):
@@ -408,6 +427,9 @@ def main(argv: Optional[list[str]] = None) -> list[dict]:
     ap.add_argument("--scenes", default="all", choices=("all", "plane", "sphere", "spot"))
     ap.add_argument("--out", default="results/speed_vs_accuracy")
     ap.add_argument("--docs", action="store_true", help="also write docs/speed_vs_accuracy.md and docs/images/*.png")
+    ap.add_argument("--stochastic", action=argparse.BooleanOptionalAction, default=True,
+                    help="the stochastic filters (<filter>-sto<k>: k draws a pixel)")
+    ap.add_argument("--only", default="", help="comma-separated methods to run (default: all)")
     args = ap.parse_args(argv)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
@@ -415,7 +437,9 @@ def main(argv: Optional[list[str]] = None) -> list[dict]:
     t_start = time.perf_counter()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    methods = method_names()
+    methods = method_names(stochastic=args.stochastic)
+    if args.only:
+        methods = [m for m in methods if m in args.only.split(",")]
     scenes = build_scenes(args.res, args.scenes)
     t_scenes = time.perf_counter() - t_start
     print(f"{len(scenes)} scenes built in {t_scenes:.1f} s; methods: {', '.join(methods)}; "

@@ -171,5 +171,11 @@ def test_decorrelated_stochastic_value_is_the_first_draw_and_gradient_another(sp
     img2.sum().backward()
     g1, g2 = one.texture.grad, two.texture.grad
     assert g2.abs().sum() > 0 and not torch.equal(g1, g2)  # the gradient: a second, independent set of draws
+    # The one check of sample's stochastic (difftex.texture.options.check_stochastic), the same messages.
     with pytest.raises(ValueError, match="stochastic: expected an int >= 0"):
         difftex.TexturedMesh(spot, tex, stochastic=-1)
+    with pytest.raises(TypeError, match="stochastic: expected an int >= 0"):
+        difftex.TexturedMesh(spot, tex, stochastic=1.5)
+    with pytest.raises(ValueError, match="stochastic: filter 'sat' has no stochastic mode"):
+        difftex.TexturedMesh(spot, tex, filter="sat", stochastic=1)
+    assert difftex.TexturedMesh(spot, tex, stochastic=True).stochastic == 1

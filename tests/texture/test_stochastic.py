@@ -15,6 +15,8 @@ import math
 import pytest
 import torch
 
+import difftex
+from difftex import _native as native
 from difftex import mipmap, sample
 from difftex.testing.scenes import checker_noise_texture, grazing_plane
 from difftex.texture.filters import stochastic as st
@@ -135,7 +137,9 @@ def test_a_biased_sampler_fails_the_check(monkeypatch):
     exact = run("trilinear", "plane", 0, 0, grads=False)[0]
     good = groups("trilinear", "plane", 4, grads=False)[0]
     monkeypatch.setattr(st, "draw_level", _biased_draw_level)
-    bad = groups("trilinear", "plane", 4, grads=False)[0]
+    # The torch path (the kernel draws inside itself; test_the_kernel_draws_as_the_torch_path holds it to this).
+    with difftex.backend("grid_sample"):
+        bad = groups("trilinear", "plane", 4, grads=False)[0]
     print("z of the right sampler", z_scores(good, exact), "of the biased one", z_scores(bad, exact))
     assert z_scores(good, exact) < Z_BOUND
     assert z_scores(bad, exact) > Z_BOUND
@@ -182,6 +186,95 @@ def test_seeded_draws_repeat_bit_for_bit():
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(one, two)
+
+
+@pytest.mark.skipif(native.load() is None, reason="native kernels not built")
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("filter,k", [("trilinear", 1), ("trilinear", 3), ("anisotropic", 1), ("anisotropic", 2)])
+def test_the_kernel_draws_as_the_torch_path(filter, k, dtype):
+    """The native kernel hashes the same uniforms as hashed_uniforms: the same draws, so the same values and
+    texture, uv and uv_dx (level) gradients as the torch path, to rounding; batches of textures included."""
+    tex = checker_noise_texture(32, checks=4, noise=0.5, channels=3, dtype=dtype).expand(2, -1, -1, -1) * \
+        torch.tensor([1.0, 0.5], dtype=dtype).view(2, 1, 1, 1)
+    uv, dx, dy = (t.expand(2, -1, -1, -1) for t in swirl(10, dtype))
+    got = []
+    for choice in ("native", "grid_sample"):
+        t, u, d = tex.clone().requires_grad_(), uv.clone().requires_grad_(), dx.clone().requires_grad_()
+        with difftex.backend(choice):
+            out = sample(t, u, filter=filter, wrap=("mirror", "repeat"), uv_dx=d, uv_dy=dy, max_aniso=8,
+                         stochastic=k, generator=torch.Generator().manual_seed(11))
+        w = torch.linspace(-1, 2, out.numel(), dtype=dtype).view_as(out)
+        got.append([out.detach(), *torch.autograd.grad((out * w).sum(), (t, u, d))])
+    # float64: the same draws to rounding. float32: the torch path places an anisotropic probe in float32
+    # (addcmul), the kernel in double, as the deterministic taps do: a few texel fractions differ in their last
+    # bits, times texel steps of up to 1 (test_native.py's float32 bound).
+    tol = dict(rtol=0, atol=3e-3) if dtype == torch.float32 else dict(rtol=1e-12, atol=1e-12)
+    for a, b in zip(*got):
+        torch.testing.assert_close(a, b, **tol)
+    assert got[0][3].abs().max() > 0  # the level's gradient reaches uv_dx
+
+
+@pytest.mark.skipif(native.load() is None, reason="native kernels not built")
+@pytest.mark.parametrize("wrap", ["repeat", "border", ("mirror", "clamp")])
+@pytest.mark.parametrize("channels", [1, 3, 5])
+def test_the_kernels_eight_point_draws_are_its_scalar_loop(wrap, channels):
+    """float32 draws eight at a time (AVX2, where the CPU has it) give the scalar loop's bits, values and
+    gradients, whatever the levels the lanes drew."""
+    kernel = native.load()
+    tex = checker_noise_texture(64, channels=channels)
+    uv, dx, dy = grazing_plane(37, pitch_deg=25.0)
+    uv = uv * 1.3 - 0.1
+    got = []
+    for simd in (True, False):
+        before = kernel.set_simd(simd)
+        try:
+            for filter in ("trilinear", "anisotropic"):
+                for d_grad in (False, True):  # with it: the level's and the axis's gradients too
+                    t, u, d = tex.clone().requires_grad_(), uv.clone().requires_grad_(), dx.clone().requires_grad_(d_grad)
+                    out = sample(t, u, filter=filter, wrap=wrap, uv_dx=d, uv_dy=dy, stochastic=1,
+                                 generator=torch.Generator().manual_seed(4))
+                    w = torch.linspace(-1, 2, out.numel()).view_as(out)
+                    got.append([out.detach(), *torch.autograd.grad((out * w).sum(), (t, u, d) if d_grad else (t, u))])
+        finally:
+            kernel.set_simd(before)
+    for a, b in zip(got[:4], got[4:]):
+        for x, y in zip(a, b):
+            assert torch.equal(x, y)
+
+
+def test_hashed_uniforms_are_splitmix64():
+    """The torch int64 arithmetic gives SplitMix64's outputs (Python's unbounded ints as the reference)."""
+    def splitmix(seed, i):
+        mask = (1 << 64) - 1
+        z = (seed + (i + 1) * 0x9E3779B97F4A7C15) & mask
+        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & mask
+        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & mask
+        return ((z ^ (z >> 31)) >> 11) / 2.0 ** 53
+    for seed in (0, 12345, -(1 << 63), (1 << 63) - 1, -7):
+        u = st.hashed_uniforms(seed, 5, 4, 3)
+        want = torch.tensor([[splitmix(seed % (1 << 64), (5 + i) * 3 + r) for r in range(3)] for i in range(4)],
+                            dtype=torch.float64)
+        assert torch.equal(u, want)
+        assert bool(((u >= 0) & (u < 1)).all())
+
+
+@pytest.mark.skipif(native.load() is None, reason="native kernels not built")
+def test_kernel_draws_do_not_depend_on_the_thread_count():
+    uv, dx, dy = (t.float() for t in plane(40))
+    tex = TEXTURE.float()
+    threads = torch.get_num_threads()
+    outs = []
+    try:
+        for n in (1, 2, 3):
+            torch.set_num_threads(n)
+            t = tex.clone().requires_grad_()
+            out = sample(t, uv, filter="anisotropic", uv_dx=dx, uv_dy=dy, max_aniso=8, stochastic=2,
+                         generator=torch.Generator().manual_seed(2))
+            outs.append((out.detach(), torch.autograd.grad(out.sum(), t)[0]))
+    finally:
+        torch.set_num_threads(threads)
+    for o in outs[1:]:
+        assert torch.equal(o[0], outs[0][0]) and torch.equal(o[1], outs[0][1])
 
 
 def test_the_default_generator_is_used_and_seeded():
@@ -406,7 +499,7 @@ def test_bad_input_names_the_argument():
     kw = dict(filter="trilinear", uv_dx=dx, uv_dy=dy)
     with pytest.raises(ValueError, match="stochastic"):
         sample(TEXTURE, uv, **kw, stochastic=-1)
-    with pytest.raises(TypeError, match="stochastic"):
+    with pytest.raises(TypeError, match="stochastic: expected an int >= 0"):
         sample(TEXTURE, uv, **kw, stochastic=1.5)
     with pytest.raises(ValueError, match="stochastic"):
         sample(TEXTURE, uv, filter="sat", uv_dx=dx, uv_dy=dy, stochastic=1)

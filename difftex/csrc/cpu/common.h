@@ -210,6 +210,21 @@ DT_INLINE Reads reads_of(double d, int64_t K, bool nearest, bool d_grad) {
   return r;
 }
 
+// The uniforms of stochastic filtering (filters/stochastic.py hashed_uniforms, which mirrors this in torch
+// int64 arithmetic): SplitMix64's output at position counter + 1 of the stream seeded by seed, its top 53
+// bits as a double in [0, 1). Counter-based: a point's draws depend on (seed, counter) alone, not on which
+// thread reads it or in what order, so the result is the same bits at any thread count.
+DT_INLINE uint64_t splitmix64(uint64_t z) {
+  z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ULL;
+  z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
+  return z ^ (z >> 31);
+}
+
+DT_INLINE double draw_uniform(uint64_t seed, uint64_t counter) {
+  return static_cast<double>(splitmix64(seed + (counter + 1) * 0x9E3779B97F4A7C15ULL) >> 11) *
+         (1.0 / 9007199254740992.0);
+}
+
 // An integral double as int64, capped at +-2^52 (wrap.py floor_index).
 DT_INLINE int64_t index_of(double x) {
   return static_cast<int64_t>(x < -kTwo52 ? -kTwo52 : (x > kTwo52 ? kTwo52 : x));

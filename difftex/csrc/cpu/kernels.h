@@ -21,6 +21,16 @@ struct ReadOptions {
   int64_t wrap_u, wrap_v;
   double border;
   bool nearest, d_grad;
+  // Stochastic texture filtering (filters/stochastic.py): instead of the
+  // filter, one draw a point: on the anisotropic line one probe drawn
+  // uniformly, then one level drawn by the defensive blend pmf, read
+  // bilinearly and weighted w(D) / p. The uniforms are common.h
+  // draw_uniform(seed, (first + e) * roles + role) for point e, the probe
+  // role 0 and the level role roles - 1 (stochastic.py ROLES, the same
+  // counters as its torch reference, so that the two draw alike).
+  bool stochastic = false;
+  uint64_t seed = 0;
+  int64_t roles = 1, first = 0;
 };
 
 // The gradients the taps' backward computes.

@@ -63,15 +63,15 @@ import torch
 from torch import Tensor
 
 from ... import _native as native
+from ..options import STOCHASTIC_FILTERS
 from ..lod import Ellipse, Footprint, level
-from ..wrap import drop_periods
+from ..pyramid.mipmap import build_levels
+from ..wrap import WRAP_CODES, drop_periods
 from .ewa import _far_clamped, _pairs, covariance, gaussian, level_ellipse, texels
 from .gather import _axis_weights, reduce_uv
 from .separable import separable_sample
-from .trilinear import Levels, trilinear_points
+from .trilinear import Levels, TexturePyramid, _native_args, trilinear_points
 
-# The filters with a stochastic mode (``sample(..., stochastic=k)``).
-STOCHASTIC_FILTERS = ("bilinear", "bicubic", "trilinear", "anisotropic", "ewa")
 # Uniforms per draw and filter, in this order: the level's last where there is one.
 ROLES = {"trilinear": ("level",), "anisotropic": ("probe", "level"), "ewa": ("texel", "level"),
          "bilinear": ("texel along u", "texel along v"), "bicubic": ("texel along u", "texel along v")}
@@ -83,17 +83,65 @@ ROLES = {"trilinear": ("level",), "anisotropic": ("probe", "level"), "ewa": ("te
 DEFENSIVE = 0.25
 
 
-def uniforms(filter: str, points: int, draws: int, generator: Optional[torch.Generator],
-             device: torch.device) -> Tensor:
-    """All the random numbers of one ``sample`` call, drawn up front: [points, draws, R] float64 in [0, 1).
+# SplitMix64 (Steele, Lea, Flood 2014): the stream's increment and the finaliser's multipliers, as signed
+# int64 (torch has no uint64 arithmetic; products wrap modulo 2^64 alike).
+_GAMMA = 0x9E3779B97F4A7C15 - (1 << 64)
+_MIX1 = 0xBF58476D1CE4E5B9 - (1 << 64)
+_MIX2 = 0x94D049BB133111EB - (1 << 64)
 
-    R = ``len(ROLES[filter])``. One ``torch.rand`` call in a fixed order (point, draw, role), so a seeded
-    generator gives the same draws whatever the thread count or the order
-    the filters later consume them in. float64: a float32 uniform has 2^24
-    steps, too coarse to draw a tap of probability 1e-8 at its rate.
+
+def _shift_right(x: Tensor, s: int) -> Tensor:
+    """``x >> s`` of int64 x read as unsigned (torch's ``>>`` on int64 copies the sign bit)."""
+    return (x >> s) & ((1 << (64 - s)) - 1)
+
+
+def hashed_uniforms(seed: int, first: int, count: int, roles: int, device: torch.device | str = "cpu") -> Tensor:
+    """Uniforms in [0, 1) of the draw counters ``first .. first + count - 1``: [count, roles] float64.
+
+    Entry (i, r) is uniform number ``(first + i) * roles + r`` of ``seed``:
+    SplitMix64's output at that position + 1 of the stream seeded by seed,
+    its top 53 bits over 2^53 (every float64 step of [0, 1), fine enough to
+    draw a tap of probability 1e-8 at its rate). Counter-based: each number
+    depends on (seed, counter) alone, so the native kernel
+    (``csrc/cpu/common.h`` draw_uniform, the same arithmetic on uint64)
+    draws the same ones inside its loop, in any order, on any thread.
     """
-    return torch.rand((points, draws, len(ROLES[filter])), generator=generator, dtype=torch.float64,
-                      device=device)
+    ctr = torch.arange(first * roles, (first + count) * roles, dtype=torch.int64, device=device)
+    z = (ctr + 1) * _GAMMA + seed
+    z = (z ^ _shift_right(z, 30)) * _MIX1
+    z = (z ^ _shift_right(z, 27)) * _MIX2
+    z = z ^ _shift_right(z, 31)
+    return (_shift_right(z, 11).to(torch.float64) * 2.0 ** -53).view(count, roles)
+
+
+def draw_seed(generator: Optional[torch.Generator], device: torch.device | str) -> int:
+    """One 64-bit seed (a signed int) from ``generator`` (None: torch's default one on ``device``)."""
+    return int(torch.randint(-(1 << 63), (1 << 63) - 1, (), generator=generator, dtype=torch.int64,
+                             device=device))
+
+
+class Stream(NamedTuple):
+    """The draws of one ``sample`` call: its seed, the uniforms per draw (``len(ROLES[filter])``) and the
+    counter of the first draw of the points at hand (a slice of the call's flat (point, draw) list)."""
+
+    seed: int
+    roles: int
+    first: int = 0
+
+    def at(self, first: int) -> "Stream":
+        """The same draws from counter ``first`` on (the points of one texture of a batch)."""
+        return self._replace(first=first)
+
+    def uniforms(self, count: int, device: torch.device | str = "cpu") -> Tensor:
+        """The uniforms of ``count`` draws from ``first`` on: [count, roles] float64 (``hashed_uniforms``)."""
+        return hashed_uniforms(self.seed, self.first, count, self.roles, device)
+
+
+def stream(filter: str, generator: Optional[torch.Generator], device: torch.device | str) -> Stream:
+    """The draws of one ``sample`` call with ``filter``: one seed drawn from ``generator``, so that a seeded
+    generator repeats the call bit for bit, whatever the thread count. Draw j of flat point i (pixels in
+    batch-major raster order) takes the ``len(ROLES[filter])`` uniforms of counter ``i * k + j``."""
+    return Stream(draw_seed(generator, device), len(ROLES[filter]))
 
 
 class LevelDraw(NamedTuple):
@@ -160,19 +208,68 @@ def trilinear_estimate(levels: Levels, uv: Tensor, D: Tensor, draw: LevelDraw, w
     return tap * level_weight(D, draw)
 
 
-def stochastic_trilinear(levels: Levels, uv: Tensor, D: Tensor, u: Tensor, wrap_u: str, wrap_v: str, border: float,
-                         axis: Tensor | None = None, count: Tensor | None = None) -> Tensor:
+class _NativeDraw(torch.autograd.Function):
+    """``stochastic_trilinear`` on the native CPU kernel: the draws hashed inside it, read and weighted in one
+    pass; the backward draws them again from the same counters. Arguments as ``trilinear._NativeTaps``, opts
+    (wrap_u, wrap_v, border, stream)."""
+
+    @staticmethod
+    def forward(ctx, uv: Tensor, D: Tensor, axis: Tensor | None, count: Tensor | None, opts: tuple,
+                *levels: Tensor) -> Tensor:
+        wrap_u, wrap_v, border, st = opts
+        ctx.opts = opts
+        ctx.save_for_backward(uv, D, axis, count, *levels)
+        kernel = native.load()
+        ctx.read = kernel.ReadOptions(wrap_u=WRAP_CODES[wrap_u], wrap_v=WRAP_CODES[wrap_v], border=border)
+        return kernel.stochastic_forward(*_native_args(levels, uv, D, axis, count), st.seed, st.roles, st.first,
+                                         ctx.read)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        uv, D, axis, count, *levels = ctx.saved_tensors
+        wrap_u, wrap_v, border, st = ctx.opts
+        need = ctx.needs_input_grad
+        if torch.is_grad_enabled():
+            # Double backward (create_graph=True): the torch path on the same uniforms.
+            return native.double_backward(
+                lambda: stochastic_trilinear(levels, uv, D, st.uniforms(uv.shape[0], uv.device), wrap_u, wrap_v,
+                                             border, axis, count),
+                (uv, D, axis, None, None, *levels), need, grad)
+        taps = axis is not None
+        kernel = native.load()
+        gl, guv, gD, gax = kernel.stochastic_backward(
+            *_native_args(levels, uv, D, axis, count), grad, st.seed, st.roles, st.first, ctx.read,
+            kernel.TapNeeds(levels=any(need[5:]), uv=need[0], D=need[1], axis=need[2] and taps))
+        return (guv, gD if need[1] else None, gax if need[2] and taps else None, None, None,
+                *native.level_grads(gl, need[5:], levels))
+
+
+def stochastic_trilinear(levels: Levels, uv: Tensor, D: Tensor, u: Tensor | Stream, wrap_u: str, wrap_v: str,
+                         border: float, axis: Tensor | None = None, count: Tensor | None = None) -> Tensor:
     """One draw of the trilinear (or, with ``axis`` / ``count``, the anisotropic) filter per point: [C, M].
 
     Args:
         levels, uv [M, 2], D [M], axis [M, 2], count [M]: as ``trilinear_points``.
-        u: [M, R] float64 uniforms (``uniforms``): the probe (anisotropic) first, the level last.
+        u: [M, R] float64 uniforms: the probe (anisotropic) first, the level
+            last; or the ``Stream`` they come from (``Stream.uniforms``),
+            which on the CPU the native kernel draws inside its loop (the
+            same uniforms, so the same draws).
 
     Returns:
         [C, M], whose expectation over ``u`` is ``trilinear_points``'s value,
         and whose gradient's expectation is its gradient (texture, uv, D,
         axis; module docstring for the exception at integer D).
     """
+    if isinstance(u, Stream):
+        if native.kernel(uv) is not None:
+            lv = build_levels(levels.texture, len(levels)) if isinstance(levels, TexturePyramid) else list(levels)
+            if count is not None and not bool((count > 1).any()):
+                # One probe everywhere (a round footprint): offset 0, so the kernel skips the probe's uniform
+                # and the axis (whose gradient is then 0, as anisotropic_taps's None gives it). The level keeps
+                # its uniform (the last of u.roles): the same draws.
+                axis = count = None
+            return _NativeDraw.apply(uv, D, axis, count, (wrap_u, wrap_v, float(border), u), *lv)
+        u = u.uniforms(uv.shape[0], uv.device)
     if count is not None:
         # Probe i of count, uniformly: the anisotropic weights are all 1 / count, so w / p = 1 and no factor.
         with torch.no_grad():
@@ -392,7 +489,7 @@ def stochastic_separable(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wr
                               draw_separable(texture, uv, kind, wrap_u, wrap_v, u))
 
 
-__all__ = ["STOCHASTIC_FILTERS", "ROLES", "uniforms", "LevelDraw", "draw_level", "level_weight",
+__all__ = ["STOCHASTIC_FILTERS", "ROLES", "hashed_uniforms", "draw_seed", "Stream", "stream", "LevelDraw", "draw_level", "level_weight",
            "trilinear_estimate", "stochastic_trilinear", "levels_drawn", "TexelDraw", "draw_ewa_texel",
            "ewa_texel_estimate", "stochastic_ewa", "SeparableDraw", "draw_separable", "separable_estimate",
            "stochastic_separable", "DEFENSIVE", "defensive", "upper_probability"]

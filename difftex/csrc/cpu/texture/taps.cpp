@@ -50,6 +50,54 @@ namespace {
 inline int64_t tap_count(const int64_t* pc, int64_t e) { return pc == nullptr ? 1 : (pc[e] < 1 ? 1 : pc[e]); }
 inline double tap_offset(int64_t i, int64_t N) { return (static_cast<double>(i) + 0.5) / static_cast<double>(N) - 0.5; }
 
+// One stochastic draw of point e (ReadOptions::stochastic; filters/stochastic.py is the reference): the
+// level, floor(D) + 1 with probability p = 3/4 frac(D) + 1/8 where D blends two levels (else floor(D)
+// alone), in r as one read of weight 1; the tap's offset along the axis (a probe i of N drawn uniformly,
+// o = tap_offset(i, N); 0 without counts); and the drawn level's weight in the blend over its probability,
+// w / p (scalar_t, rounded as the torch path rounds it), with its d / dD, +-1 / p. frac, p and w are
+// computed in the texture's dtype as the torch path does, so that a float32 D draws the level it draws.
+template <typename scalar_t>
+struct Draw {
+  Reads r;
+  double offset;
+  scalar_t scale;
+  double dscale;
+};
+
+template <typename scalar_t>
+DT_INLINE Draw<scalar_t> draw_of(const ReadOptions& o, int64_t e, scalar_t d, int64_t K, const int64_t* pc) {
+  Draw<scalar_t> dr;
+  const uint64_t ctr = static_cast<uint64_t>(o.first + e) * static_cast<uint64_t>(o.roles);
+  dr.offset = 0.0;
+  if (pc != nullptr) {
+    const int64_t N = tap_count(pc, e);
+    const double n = static_cast<double>(N);
+    double i = floor_capped(draw_uniform(o.seed, ctr) * n);
+    i = i > n - 1 ? n - 1 : i;
+    dr.offset = tap_offset(static_cast<int64_t>(i), N);
+  }
+  const scalar_t k0 = static_cast<scalar_t>(floor_capped(static_cast<double>(d)));
+  const scalar_t f = d - k0;
+  const scalar_t p = f > 0 ? static_cast<scalar_t>(0.75) * f + static_cast<scalar_t>(0.125) : scalar_t(0);
+  // upper is a coin toss: the choices below are table lookups, not branches (measured: the mispredicted
+  // branches took as long as the reads).
+  const int upper = draw_uniform(o.seed, ctr + static_cast<uint64_t>(o.roles - 1)) < static_cast<double>(p);
+  int64_t k = static_cast<int64_t>(k0) + upper;
+  k = k < 0 ? 0 : (k > K - 1 ? K - 1 : k);
+  dr.r.n = 1;
+  dr.r.k[0] = k;
+  dr.r.wt[0] = 1.0;
+  dr.r.dwt[0] = 0.0;
+  const scalar_t pdf_of[2] = {scalar_t(1) - p, p}, w_of[2] = {scalar_t(1) - f, f};
+  const double sign[2] = {-1.0, 1.0};
+  const scalar_t pdf = pdf_of[upper];
+  // An integer level (f = 0) is read alone: weight 1, no level derivative (stochastic.py's docstring).
+  const bool blend = f > 0;
+  dr.scale = blend ? w_of[upper] / pdf : scalar_t(1);
+  dr.dscale = blend ? sign[upper] / static_cast<double>(pdf) : 0.0;
+  return dr;
+}
+
 // The forward over points [lo, hi); CC > 0 fixes the channel count at
 // compile time (accumulators in registers), 0 takes it at run time.
 template <typename scalar_t, int CC, bool kBorder>
@@ -94,6 +142,103 @@ void forward_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<Level
   }
 }
 
+
+// A stochastic draw of one point, placed: its level, the tap's texels on it, w / p and d(w / p) / dD, the
+// probe's offset along the axis; live is false for a non-finite uv (NaN, no gradient).
+template <typename scalar_t>
+struct Placed {
+  Bilinear b;
+  int64_t k;
+  scalar_t scale;
+  double dscale, offset;
+  bool live;
+};
+
+template <typename scalar_t>
+DT_INLINE void place_draw(const ReadOptions& o, int64_t e, const std::vector<Level>& L, const scalar_t* puv,
+                          const scalar_t* pd, const int64_t* pc, const scalar_t* pa, int64_t wrap_u, int64_t wrap_v,
+                          Placed<scalar_t>& q) {
+  const double u = puv[2 * e], v = puv[2 * e + 1];
+  q.live = std::isfinite(u) && std::isfinite(v);
+  if (!q.live) return;
+  const Draw<scalar_t> dr = draw_of<scalar_t>(o, e, pd[e], static_cast<int64_t>(L.size()), pc);
+  q.k = dr.r.k[0];
+  q.scale = dr.scale;
+  q.dscale = dr.dscale;
+  q.offset = dr.offset;
+  const double tu = pc ? u + dr.offset * pa[2 * e] : u, tv = pc ? v + dr.offset * pa[2 * e + 1] : v;
+  const Level& lv = L[q.k];
+  q.b = taps_folded(fold(tu, wrap_u), fold(tv, wrap_v), lv.h, lv.w, wrap_u, wrap_v);
+}
+
+// The drawn levels are a coin toss per point, so the lines a point reads are seldom those its neighbour just
+// read: the points are placed a block ahead (kDrawBlock) and their rows prefetched (both rows of the tap, every
+// channel plane), so that the misses of a block overlap the reads of the one before (as prepare_taps8 does
+// for the deterministic taps).
+constexpr int kDrawBlock = 16;
+
+template <typename scalar_t>
+DT_INLINE void prefetch_draw(const Placed<scalar_t>& q, int64_t C, const std::vector<Level>& L,
+                             const std::vector<const scalar_t*>& lp, scalar_t* const* gp) {
+  if (!q.live) return;
+  const int64_t plane = L[q.k].plane;
+  for (int64_t c = 0; c < C; ++c) {
+    DT_PREFETCH(lp[q.k] + c * plane + q.b.idx[0], false);
+    DT_PREFETCH(lp[q.k] + c * plane + q.b.idx[2], false);
+    if (gp != nullptr && gp[q.k] != nullptr) {
+      DT_PREFETCH(gp[q.k] + c * plane + q.b.idx[0], true);
+      DT_PREFETCH(gp[q.k] + c * plane + q.b.idx[2], true);
+    }
+  }
+}
+
+// The stochastic forward of points [lo, hi): forward_range's arithmetic for one tap of weight 1, then times
+// w / p (the same bits as forward_range with a ReadOptions), by blocks placed one ahead.
+template <typename scalar_t, int CC, bool kBorder>
+void forward_draws(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<Level>& L,
+                   const std::vector<const scalar_t*>& lp, const scalar_t* puv, const scalar_t* pd,
+                   const int64_t* pc, const scalar_t* pa, scalar_t* po, int64_t M, int64_t wrap_u, int64_t wrap_v,
+                   double border, const ReadOptions& o) {
+  const int64_t C = CC > 0 ? CC : Cdyn;
+  const scalar_t bv = static_cast<scalar_t>(border);
+  Placed<scalar_t> blk[2][kDrawBlock];
+  auto fill = [&](int64_t e0, Placed<scalar_t>* q) {
+    const int64_t n = std::min<int64_t>(kDrawBlock, hi - e0);
+    for (int64_t i = 0; i < n; ++i) {
+      place_draw(o, e0 + i, L, puv, pd, pc, pa, wrap_u, wrap_v, q[i]);
+      prefetch_draw<scalar_t>(q[i], C, L, lp, nullptr);
+    }
+    return n;
+  };
+  int cur = 0;
+  int64_t n = lo < hi ? fill(lo, blk[0]) : 0;
+  for (int64_t e0 = lo; n > 0; e0 += kDrawBlock, cur ^= 1) {
+    const int64_t m = e0 + kDrawBlock < hi ? fill(e0 + kDrawBlock, blk[cur ^ 1]) : 0;
+    for (int64_t i = 0; i < n; ++i) {
+      const Placed<scalar_t>& q = blk[cur][i];
+      const int64_t e = e0 + i;
+      if (!q.live) {
+        for (int64_t c = 0; c < C; ++c) po[c * M + e] = std::numeric_limits<scalar_t>::quiet_NaN();
+        continue;
+      }
+      const Bilinear& b = q.b;
+      const Level& lv = L[q.k];
+      const double wl = 1.0;
+      const scalar_t wts[4] = {static_cast<scalar_t>(wl * (1 - b.fx) * (1 - b.fy)), static_cast<scalar_t>(wl * b.fx * (1 - b.fy)),
+                               static_cast<scalar_t>(wl * (1 - b.fx) * b.fy), static_cast<scalar_t>(wl * b.fx * b.fy)};
+      const scalar_t* p = lp[q.k];
+      for (int64_t c = 0; c < C; ++c) {
+        const scalar_t* pp = p + c * lv.plane;
+        scalar_t s = 0;
+        for (int r = 0; r < 4; ++r) s += wts[r] * (!kBorder || b.inside[r] ? pp[b.idx[r]] : bv);
+        scalar_t acc = 0.0;
+        acc += s;
+        po[c * M + e] = acc * q.scale;
+      }
+    }
+    n = m;
+  }
+}
 
 // ---------------------------------------------------------------------------
 // One tap a point (trilinear, nearest-mip) in float32, eight points at a
@@ -405,6 +550,168 @@ __attribute__((target("avx2,fma"))) void forward_range_avx2(int64_t lo, int64_t 
                                       nearest, d_grad);
 }
 
+// Eight stochastic draws (float32) placed for their reads: the draws and tap positions point by point
+// (draw_of, in double as place_draw), then per drawn level (at most two in a group: neighbouring pixels' D
+// differ by less than one) the taps of all eight lanes placed in vectors (place8: the scalar placement's
+// bits), read in the lanes on that level (masked gathers) and blended. vec is false where a uv is not finite
+// or the eight drew three levels: those go through forward_draws.
+struct DrawGroup8 {
+  bool vec;
+  int n;
+  int64_t k[2];
+  Quad8 t[2];
+  __m256 w[2][4];
+  __m256 lane[2];
+  __m256 scale;
+  // Two levels whose texels lie within int32 offsets of the first level's (the usual case: both are
+  // allocations of one process): the lanes' taps merged into one set of offsets from lp[k[0]], and each
+  // lane's channel stride, so that a channel costs four gathers, as on one level.
+  bool merged;
+  Quad8 m;
+  __m256i plane;
+  __m256 w1[4];
+};
+
+DT_AVX2 void prepare_draws8(int64_t e, int64_t C, const std::vector<Level>& L, const std::vector<const float*>& lp,
+                            const float* puv, const float* pd, const int64_t* pc, const float* pa, int64_t wrap_u,
+                            int64_t wrap_v, const ReadOptions& o, DrawGroup8& g) {
+  const int64_t K = static_cast<int64_t>(L.size());
+  alignas(32) double u[8], v[8];
+  alignas(32) float sc[8];
+  alignas(32) int32_t in_level[2][8];
+  int64_t kk[8];
+  g.vec = false;
+  for (int j = 0; j < 8; ++j) {
+    const int64_t p = e + j;
+    const double pu = puv[2 * p], pv = puv[2 * p + 1];
+    if (!std::isfinite(pu) || !std::isfinite(pv)) return;
+    const Draw<float> dr = draw_of<float>(o, p, pd[p], K, pc);
+    kk[j] = dr.r.k[0];
+    sc[j] = dr.scale;
+    u[j] = pc ? pu + dr.offset * pa[2 * p] : pu;
+    v[j] = pc ? pv + dr.offset * pa[2 * p + 1] : pv;
+  }
+  // The lanes' levels, without a branch per lane (the levels are coin tosses): the first lane's, and any other.
+  g.k[0] = kk[0];
+  g.k[1] = kk[0];
+  for (int j = 1; j < 8; ++j) g.k[1] = kk[j] != kk[0] ? kk[j] : g.k[1];
+  bool ok = true;
+  for (int j = 0; j < 8; ++j) {
+    ok = ok && (kk[j] == g.k[0] || kk[j] == g.k[1]);
+    in_level[0][j] = -static_cast<int32_t>(kk[j] == g.k[0]);
+    in_level[1][j] = -static_cast<int32_t>(kk[j] != g.k[0]);
+  }
+  if (!ok) return;
+  g.n = g.k[1] != g.k[0] ? 2 : 1;
+  g.scale = _mm256_load_ps(sc);
+  Reads8 ones;  // weight 1 in every lane: forward_draws's wl
+  for (int j = 0; j < 8; ++j) ones.wt[0][j] = 1.0;
+  for (int jr = 0; jr < g.n; ++jr) {
+    const Level& lv = L[g.k[jr]];
+    Place8 px, py;
+    place8(u, static_cast<int32_t>(lv.w), static_cast<int>(wrap_u), px);
+    place8(v, static_cast<int32_t>(lv.h), static_cast<int>(wrap_v), py);
+    g.t[jr] = quad8(px, py, static_cast<int32_t>(lv.w));
+    tap_weights8(ones, 0, px, py, g.w[jr]);
+    g.lane[jr] = _mm256_castsi256_ps(_mm256_load_si256(reinterpret_cast<const __m256i*>(in_level[jr])));
+    alignas(32) int32_t r[2][8];
+    _mm256_store_si256(reinterpret_cast<__m256i*>(r[0]), g.t[jr].idx[0]);
+    _mm256_store_si256(reinterpret_cast<__m256i*>(r[1]), g.t[jr].idx[2]);
+    const float* p = lp[g.k[jr]];
+    for (int j = 0; j < 8; ++j) {
+      if (!in_level[jr][j]) continue;
+      for (int64_t c = 0; c < C; ++c) {
+        DT_PREFETCH(p + c * lv.plane + r[0][j], false);
+        DT_PREFETCH(p + c * lv.plane + r[1][j], false);
+      }
+    }
+  }
+  g.merged = false;
+  if (g.n == 2) {
+    const int64_t diff = lp[g.k[1]] - lp[g.k[0]], p0 = L[g.k[0]].plane, p1 = L[g.k[1]].plane;
+    const int64_t lo = std::min<int64_t>(0, diff), hi = std::max<int64_t>(C * p0, diff + C * p1);
+    if (lo > -(int64_t(1) << 31) && hi < (int64_t(1) << 31)) {
+      g.merged = true;
+      const __m256i sel = _mm256_castps_si256(g.lane[1]);
+      const __m256i shift = _mm256_and_si256(sel, _mm256_set1_epi32(static_cast<int32_t>(diff)));
+      for (int q = 0; q < 4; ++q) {
+        g.m.idx[q] = _mm256_add_epi32(_mm256_blendv_epi8(g.t[0].idx[q], g.t[1].idx[q], sel), shift);
+        g.m.in[q] = _mm256_blendv_epi8(g.t[0].in[q], g.t[1].in[q], sel);
+        g.w1[q] = _mm256_blendv_ps(g.w[0][q], g.w[1][q], g.lane[1]);
+      }
+      g.plane = _mm256_blendv_epi8(_mm256_set1_epi32(static_cast<int32_t>(p0)),
+                                   _mm256_set1_epi32(static_cast<int32_t>(p1)), sel);
+    }
+  }
+  g.vec = true;
+}
+
+// The reads of a prepared group of draws into po[c * M + e]: forward_draws's sums in its order, lane by lane.
+template <bool kBorder>
+DT_AVX2 void read_draws8(const DrawGroup8& g, int64_t e, int64_t C, const std::vector<Level>& L,
+                         const std::vector<const float*>& lp, float* po, int64_t M, __m256 bv) {
+  const __m256 zero = _mm256_setzero_ps();
+  if (g.merged) {
+    const float* base = lp[g.k[0]];
+    __m256i off = _mm256_setzero_si256();
+    for (int64_t c = 0; c < C; ++c, off = _mm256_add_epi32(off, g.plane)) {
+      __m256 s = zero;
+      for (int q = 0; q < 4; ++q) {
+        const __m256i idx = _mm256_add_epi32(g.m.idx[q], off);
+        const __m256 t = kBorder ? _mm256_mask_i32gather_ps(bv, base, idx, _mm256_castsi256_ps(g.m.in[q]), 4)
+                                 : _mm256_i32gather_ps(base, idx, 4);
+        s = _mm256_add_ps(s, _mm256_mul_ps(g.w1[q], t));
+      }
+      _mm256_storeu_ps(po + c * M + e, _mm256_mul_ps(_mm256_add_ps(zero, s), g.scale));
+    }
+    return;
+  }
+  for (int64_t c = 0; c < C; ++c) {
+    __m256 out = zero;
+    for (int jr = 0; jr < g.n; ++jr) {
+      const float* pp = lp[g.k[jr]] + c * L[g.k[jr]].plane;
+      __m256 s = zero;
+      for (int q = 0; q < 4; ++q) {
+        __m256 t;
+        if (g.n == 1) {
+          t = tap8<kBorder>(pp, g.t[jr], q, bv);
+        } else {
+          const __m256 mask = kBorder ? _mm256_and_ps(g.lane[jr], _mm256_castsi256_ps(g.t[jr].in[q])) : g.lane[jr];
+          t = _mm256_mask_i32gather_ps(kBorder ? bv : zero, pp, g.t[jr].idx[q], mask, 4);
+        }
+        s = _mm256_add_ps(s, _mm256_mul_ps(g.w[jr][q], t));
+      }
+      out = g.n == 1 ? s : _mm256_blendv_ps(out, s, g.lane[jr]);
+    }
+    _mm256_storeu_ps(po + c * M + e, _mm256_mul_ps(_mm256_add_ps(zero, out), g.scale));
+  }
+}
+
+// The stochastic forward of points [lo, hi), float32, by groups_of_eight (the same bits as forward_draws).
+template <int CC, bool kBorder>
+__attribute__((target("avx2,fma"))) void forward_draws_avx2(int64_t lo, int64_t hi, int64_t C,
+                                                            const std::vector<Level>& L,
+                                                            const std::vector<const float*>& lp, const float* puv,
+                                                            const float* pd, const int64_t* pc, const float* pa,
+                                                            float* po, int64_t M, int64_t wrap_u, int64_t wrap_v,
+                                                            double border, const ReadOptions& o) {
+  const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
+  const int64_t end = lo + (hi - lo) / 8 * 8;
+  groups_of_eight<DrawGroup8>(
+      lo, end,
+      [&](int64_t e, DrawGroup8& g) __attribute__((target("avx2,fma"))) {
+        prepare_draws8(e, C, L, lp, puv, pd, pc, pa, wrap_u, wrap_v, o, g);
+      },
+      [&](const DrawGroup8& g, int64_t e) __attribute__((target("avx2,fma"))) {
+        if (g.vec)
+          read_draws8<kBorder>(g, e, C, L, lp, po, M, bv);
+        else
+          forward_draws<float, CC, kBorder>(e, e + 8, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border, o);
+      });
+  if (end < hi)
+    forward_draws<float, CC, kBorder>(end, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border, o);
+}
+
 // The taps of eight points with N_j taps each along their axes: tap i at uv + o_i * axis with
 // o_i = tap_offset(i, N_j), in vectors with the scalar loop's operations (division, product, sum: the same bits).
 struct TapLine8 {
@@ -535,7 +842,12 @@ Tensor forward(std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis,
   auto L = shapes(levels, uv, D, axis, count);
   const int64_t C = levels[0].size(0), M = uv.size(0);
   auto out = empty({C, M}, options_of(uv));
-  const bool simd = simd_taps(uv, count, levels), simd_n = simd_levels(uv, levels) && count.numel() != 0;
+  // A stochastic draw reads one tap on a level drawn point by point: neighbouring points seldom share their
+  // level, which the deterministic eight-point paths need; forward_draws(_avx2) read them.
+  const bool sto = opts.stochastic;
+  const bool simd = !sto && simd_taps(uv, count, levels);
+  const bool simd_n = !sto && simd_levels(uv, levels) && count.numel() != 0;
+  const bool sto_simd = sto && simd_levels(uv, levels);  // forward_draws_avx2: a level per lane
   DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_forward", [&] {
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.mutable_data_ptr<scalar_t>());
@@ -550,12 +862,17 @@ Tensor forward(std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis,
         constexpr bool kB = decltype(border_)::value;
 #if DT_HAVE_AVX2
         if constexpr (std::is_same_v<scalar_t, float>) {
+          if (sto_simd) return forward_draws_avx2<CC, kB>(lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v,
+                                                          border, opts);
           if (simd) return forward_range_avx2<CC, kB>(lo, hi, C, L, lp, puv, pd, po, M, wrap_u, wrap_v, border,
                                                        nearest, d_grad);
           if (simd_n) return forward_taps_avx2<CC, kB>(lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v,
                                                       border, nearest, d_grad);
         }
 #endif
+        if (sto)
+          return forward_draws<scalar_t, CC, kB>(lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border,
+                                                 opts);
         forward_range<scalar_t, CC, kB>(lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border, nearest,
                                         d_grad);
       });
@@ -645,6 +962,63 @@ DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<Level>&
   if (out.axis) {
     out.axis[2 * e] = static_cast<scalar_t>(dax);
     out.axis[2 * e + 1] = static_cast<scalar_t>(day);
+  }
+}
+
+// A placed stochastic draw's backward (the forward's draw again, from the same counters): backward_point's
+// arithmetic for its one tap of weight w / p and level derivative d(w / p) / dD = +-1 / p, so the texel
+// gradients are (g w / p) times the bilinear weights, as the torch path's product (tap * level_weight) gives.
+template <typename scalar_t, int CC, bool kBorder>
+DT_INLINE void backward_draw(const Placed<scalar_t>& q, int64_t e, int64_t Cdyn, const std::vector<Level>& L,
+                             const std::vector<const scalar_t*>& lp, const scalar_t* pg, const Grads<scalar_t>& out,
+                             int64_t gsc, int64_t gsm, double border) {
+  if (!q.live) return;
+  const int64_t C = CC > 0 ? CC : Cdyn;
+  const scalar_t bv = static_cast<scalar_t>(border);
+  std::vector<scalar_t> heap(CC > 0 ? 0 : C);
+  scalar_t stack[CC > 0 ? CC : 1];
+  scalar_t* g = CC > 0 ? stack : heap.data();
+  bool any = false;
+  for (int64_t c = 0; c < C; ++c) {
+    g[c] = pg[c * gsc + e * gsm] / static_cast<scalar_t>(1);
+    any = any || g[c] != 0;
+  }
+  if (!any) return;
+  const Level& lv = L[q.k];
+  const Bilinear& b = q.b;
+  const scalar_t fx = static_cast<scalar_t>(b.fx), fy = static_cast<scalar_t>(b.fy);
+  const scalar_t w[4] = {(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy};
+  const double wt = static_cast<double>(q.scale);
+  const scalar_t wl = static_cast<scalar_t>(wt);
+  const scalar_t* p = lp[q.k];
+  scalar_t* gk = out.gp[q.k];
+  scalar_t sx = 0, sy = 0, sv = 0;
+  for (int64_t c = 0; c < C; ++c) {
+    const scalar_t* pp = p + c * lv.plane;
+    scalar_t t[4];
+    for (int r = 0; r < 4; ++r) t[r] = !kBorder || b.inside[r] ? pp[b.idx[r]] : bv;
+    sx += g[c] * ((1 - fy) * (t[1] - t[0]) + fy * (t[3] - t[2]));
+    sy += g[c] * ((1 - fx) * (t[2] - t[0]) + fx * (t[3] - t[1]));
+    sv += g[c] * (w[0] * t[0] + w[1] * t[1] + w[2] * t[2] + w[3] * t[3]);
+    if (gk != nullptr) {
+      scalar_t* gq = gk + c * lv.plane;
+      const scalar_t gw = g[c] * wl;
+      for (int r = 0; r < 4; ++r)
+        if (!kBorder || b.inside[r]) gq[b.idx[r]] += gw * w[r];
+    }
+  }
+  double du = 0, dv = 0, dD = 0;
+  du += wt * sx * b.sx * static_cast<double>(lv.w);
+  dv += wt * sy * b.sy * static_cast<double>(lv.h);
+  dD += q.dscale * sv;
+  if (out.uv) {
+    out.uv[2 * e] = static_cast<scalar_t>(0.0 + du);
+    out.uv[2 * e + 1] = static_cast<scalar_t>(0.0 + dv);
+  }
+  if (out.D) out.D[e] = static_cast<scalar_t>(dD);
+  if (out.axis) {
+    out.axis[2 * e] = static_cast<scalar_t>(0.0 + q.offset * du);
+    out.axis[2 * e + 1] = static_cast<scalar_t>(0.0 + q.offset * dv);
   }
 }
 
@@ -933,6 +1307,230 @@ __attribute__((target("avx2,fma"))) int64_t backward_range8(const int64_t* idx, 
   return end;
 }
 
+// Eight stochastic draws' backward (float32, points e[0..8) in the banded order): the draws and tap positions
+// point by point (place_draw's), the taps of each drawn level placed in vectors (level8: the scalar
+// placement's bits) and merged lane by lane into one set of offsets from the first level's texels where the
+// two levels lie within int32 offsets of each other (prepare_draws8's merge); vec is false where a uv is not
+// finite, the eight drew three levels or the offsets do not fit: those go through backward_draw.
+struct BackDraw8 {
+  bool vec;
+  int64_t k[2];
+  int32_t jr[8];          // each lane's level (0 or 1)
+  Quad8 t[2];             // each level's taps (the scatter's offsets into that level's gradient)
+  Quad8 m;                // the lanes' taps as offsets from lp[k[0]] (the gathers)
+  __m256i plane;          // each lane's channel stride
+  __m256 fx, fy, scale;
+  __m256d sx[2], sy[2], w[2], h[2], wt[2], dscale[2], offset[2];
+};
+
+// A merged offset (from the first level's texels) back to one on the lane's own level jr.
+inline int32_t idx_of_level(int32_t merged, int32_t jr, int64_t diff) {
+  return jr ? static_cast<int32_t>(merged - diff) : merged;
+}
+
+template <int CC>
+DT_AVX2 void prepare_back_draws8(const int64_t* e, int64_t Cdyn, const std::vector<Level>& L,
+                                 const std::vector<const float*>& lp, const float* puv, const float* pd,
+                                 const int64_t* pc, const float* pa, const Grads<float>& out, int64_t wrap_u,
+                                 int64_t wrap_v, const ReadOptions& o, BackDraw8& g) {
+  const int64_t C = CC > 0 ? CC : Cdyn;
+  alignas(32) double u[8], v[8], wt[8], ds[8], off[8];
+  alignas(32) float sc[8];
+  int64_t kk[8];
+  g.vec = false;
+  const int64_t K = static_cast<int64_t>(L.size());
+  for (int j = 0; j < 8; ++j) {  // place_draw's draw and tap position; the taps are placed in vectors below
+    const int64_t p = e[j];
+    const double pu = puv[2 * p], pv = puv[2 * p + 1];
+    if (!std::isfinite(pu) || !std::isfinite(pv)) return;
+    const Draw<float> dr = draw_of<float>(o, p, pd[p], K, pc);
+    kk[j] = dr.r.k[0];
+    sc[j] = dr.scale;
+    wt[j] = static_cast<double>(dr.scale);
+    ds[j] = dr.dscale;
+    off[j] = dr.offset;
+    u[j] = pc ? pu + dr.offset * pa[2 * p] : pu;
+    v[j] = pc ? pv + dr.offset * pa[2 * p + 1] : pv;
+  }
+  g.k[0] = g.k[1] = kk[0];
+  for (int j = 1; j < 8; ++j) g.k[1] = kk[j] != kk[0] ? kk[j] : g.k[1];
+  alignas(32) int32_t sel[8];
+  for (int j = 0; j < 8; ++j) {
+    if (kk[j] != g.k[0] && kk[j] != g.k[1]) return;
+    g.jr[j] = kk[j] != g.k[0];
+    sel[j] = -g.jr[j];
+  }
+  const int64_t diff = lp[g.k[1]] - lp[g.k[0]], p0 = L[g.k[0]].plane, p1 = L[g.k[1]].plane;
+  const int64_t lo = std::min<int64_t>(0, diff), hi = std::max<int64_t>(C * p0, diff + C * p1);
+  if (!(lo > -(int64_t(1) << 31) && hi < (int64_t(1) << 31))) return;
+  Level8 a[2];
+  level8(u, v, L[g.k[0]], wrap_u, wrap_v, a[0]);
+  if (g.k[1] != g.k[0]) level8(u, v, L[g.k[1]], wrap_u, wrap_v, a[1]);
+  else a[1] = a[0];
+  const __m256i s = _mm256_load_si256(reinterpret_cast<const __m256i*>(sel));
+  const __m256 sf = _mm256_castsi256_ps(s);
+  const __m256i shift = _mm256_and_si256(s, _mm256_set1_epi32(static_cast<int32_t>(diff)));
+  for (int q = 0; q < 4; ++q) {
+    g.t[0].idx[q] = a[0].t.idx[q], g.t[1].idx[q] = a[1].t.idx[q];
+    g.t[0].in[q] = a[0].t.in[q], g.t[1].in[q] = a[1].t.in[q];
+    g.m.idx[q] = _mm256_add_epi32(_mm256_blendv_epi8(a[0].t.idx[q], a[1].t.idx[q], s), shift);
+    g.m.in[q] = _mm256_blendv_epi8(a[0].t.in[q], a[1].t.in[q], s);
+  }
+  g.plane = _mm256_blendv_epi8(_mm256_set1_epi32(static_cast<int32_t>(p0)), _mm256_set1_epi32(static_cast<int32_t>(p1)), s);
+  {  // the lines each point reads and writes: both rows of its tap, every channel
+    alignas(32) int32_t r0[8], r1[8];
+    _mm256_store_si256(reinterpret_cast<__m256i*>(r0), g.m.idx[0]);
+    _mm256_store_si256(reinterpret_cast<__m256i*>(r1), g.m.idx[2]);
+    const float* base = lp[g.k[0]];
+    for (int j = 0; j < 8; ++j) {
+      const int64_t plane = L[kk[j]].plane;
+      float* gk = out.gp[kk[j]];
+      const int32_t a0 = idx_of_level(r0[j], g.jr[j], diff), a1 = idx_of_level(r1[j], g.jr[j], diff);
+      for (int64_t c = 0; c < C; ++c) {
+        DT_PREFETCH(base + r0[j] + c * plane, false);
+        DT_PREFETCH(base + r1[j] + c * plane, false);
+        if (gk != nullptr) {
+          DT_PREFETCH(gk + a0 + c * plane, true);
+          DT_PREFETCH(gk + a1 + c * plane, true);
+        }
+      }
+    }
+  }
+  g.fx = _mm256_blendv_ps(a[0].fx, a[1].fx, sf);
+  g.fy = _mm256_blendv_ps(a[0].fy, a[1].fy, sf);
+  g.scale = _mm256_load_ps(sc);
+  const double w0 = static_cast<double>(L[g.k[0]].w), w1 = static_cast<double>(L[g.k[1]].w);
+  const double h0 = static_cast<double>(L[g.k[0]].h), h1 = static_cast<double>(L[g.k[1]].h);
+  for (int hh = 0; hh < 2; ++hh) {
+    alignas(32) int64_t mk[4];  // the lanes on the second level, as 64-bit masks
+    for (int j = 0; j < 4; ++j) mk[j] = sel[4 * hh + j] ? -1 : 0;
+    const __m256d md = _mm256_castsi256_pd(_mm256_load_si256(reinterpret_cast<const __m256i*>(mk)));
+    g.sx[hh] = _mm256_blendv_pd(a[0].sx[hh], a[1].sx[hh], md);
+    g.sy[hh] = _mm256_blendv_pd(a[0].sy[hh], a[1].sy[hh], md);
+    g.w[hh] = _mm256_blendv_pd(_mm256_set1_pd(w0), _mm256_set1_pd(w1), md);
+    g.h[hh] = _mm256_blendv_pd(_mm256_set1_pd(h0), _mm256_set1_pd(h1), md);
+    g.wt[hh] = _mm256_load_pd(wt + 4 * hh);
+    g.dscale[hh] = _mm256_load_pd(ds + 4 * hh);
+    g.offset[hh] = _mm256_load_pd(off + 4 * hh);
+  }
+  g.vec = true;
+}
+
+// The backward of a prepared group: backward_draw's arithmetic lane by lane (the same bits), the texel
+// gradients scattered point after point in the group's order, as backward_draw adds them.
+template <int CC, bool kBorder>
+__attribute__((target("avx2,fma"))) void backward_draws8(const BackDraw8& grp, const int64_t* e, int64_t Cdyn,
+                                                         const std::vector<Level>& L,
+                                                         const std::vector<const float*>& lp, const float* pg,
+                                                         const Grads<float>& out, int64_t gsc, int64_t gsm,
+                                                         double border) {
+  const int64_t C = CC > 0 ? CC : Cdyn;
+  constexpr int CMAX = CC > 0 ? CC : 1;
+  std::vector<float> gheap(CC > 0 ? 0 : 8 * C + 7);
+  __m256 gstack[CMAX];
+  __m256* g = CC > 0 ? gstack
+                     : reinterpret_cast<__m256*>((reinterpret_cast<uintptr_t>(gheap.data()) + 31) & ~uintptr_t{31});
+  const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f);
+  __m256 any = zero;
+  for (int64_t c = 0; c < C; ++c) {
+    alignas(32) float gc[8];
+    for (int j = 0; j < 8; ++j) gc[j] = pg[c * gsc + e[j] * gsm];
+    g[c] = _mm256_load_ps(gc);
+    any = _mm256_or_ps(any, _mm256_cmp_ps(g[c], zero, _CMP_NEQ_UQ));
+  }
+  const int live = _mm256_movemask_ps(any);
+  if (live == 0) return;
+  const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
+  const __m256 fx = grp.fx, fy = grp.fy, gx = _mm256_sub_ps(one, fx), gy = _mm256_sub_ps(one, fy);
+  const __m256 w[4] = {_mm256_mul_ps(gx, gy), _mm256_mul_ps(fx, gy), _mm256_mul_ps(gx, fy), _mm256_mul_ps(fx, fy)};
+  const float* base = lp[grp.k[0]];
+  std::vector<float> sheap(CC > 0 ? 0 : C * 32);
+  alignas(32) float sstack[CMAX][4][8];
+  float(*share)[4][8] = CC > 0 ? sstack : reinterpret_cast<float(*)[4][8]>(sheap.data());
+  __m256 sx = zero, sy = zero, sv = zero;
+  __m256i off = _mm256_setzero_si256();
+  for (int64_t c = 0; c < C; ++c, off = _mm256_add_epi32(off, grp.plane)) {
+    __m256 t[4];
+    for (int q = 0; q < 4; ++q) {
+      const __m256i idx = _mm256_add_epi32(grp.m.idx[q], off);
+      t[q] = kBorder ? _mm256_mask_i32gather_ps(bv, base, idx, _mm256_castsi256_ps(grp.m.in[q]), 4)
+                     : _mm256_i32gather_ps(base, idx, 4);
+    }
+    sx = _mm256_add_ps(sx, _mm256_mul_ps(g[c], _mm256_add_ps(_mm256_mul_ps(gy, _mm256_sub_ps(t[1], t[0])),
+                                                             _mm256_mul_ps(fy, _mm256_sub_ps(t[3], t[2])))));
+    sy = _mm256_add_ps(sy, _mm256_mul_ps(g[c], _mm256_add_ps(_mm256_mul_ps(gx, _mm256_sub_ps(t[2], t[0])),
+                                                             _mm256_mul_ps(fx, _mm256_sub_ps(t[3], t[1])))));
+    __m256 val = _mm256_add_ps(_mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(w[0], t[0]), _mm256_mul_ps(w[1], t[1])),
+                                             _mm256_mul_ps(w[2], t[2])), _mm256_mul_ps(w[3], t[3]));
+    sv = _mm256_add_ps(sv, _mm256_mul_ps(g[c], val));
+    const __m256 gw = _mm256_mul_ps(g[c], grp.scale);
+    for (int q = 0; q < 4; ++q) _mm256_storeu_ps(share[c][q], _mm256_mul_ps(gw, w[q]));  // the heap: unaligned
+  }
+  alignas(32) int32_t idx[2][4][8], in[2][4][8];
+  for (int jr = 0; jr < 2; ++jr)
+    for (int q = 0; q < 4; ++q) {
+      _mm256_store_si256(reinterpret_cast<__m256i*>(idx[jr][q]), grp.t[jr].idx[q]);
+      if (kBorder) _mm256_store_si256(reinterpret_cast<__m256i*>(in[jr][q]), grp.t[jr].in[q]);
+    }
+  for (int j = 0; j < 8; ++j) {
+    if (!(live >> j & 1)) continue;
+    const int jr = grp.jr[j];
+    float* gk = out.gp[grp.k[jr]];
+    if (gk == nullptr) continue;
+    const int64_t plane = L[grp.k[jr]].plane;
+    for (int64_t c = 0; c < C; ++c) {
+      float* gq = gk + c * plane;
+      for (int q = 0; q < 4; ++q)
+        if (!kBorder || in[jr][q][j]) gq[idx[jr][q][j]] += share[c][q][j];
+    }
+  }
+  alignas(32) double ou[8], ov[8], oD[8], oau[8], oav[8];
+  const __m256d zd = _mm256_setzero_pd();
+  for (int hh = 0; hh < 2; ++hh) {
+    const __m128 lo_x = hh == 0 ? _mm256_castps256_ps128(sx) : _mm256_extractf128_ps(sx, 1);
+    const __m128 lo_y = hh == 0 ? _mm256_castps256_ps128(sy) : _mm256_extractf128_ps(sy, 1);
+    const __m128 lo_v = hh == 0 ? _mm256_castps256_ps128(sv) : _mm256_extractf128_ps(sv, 1);
+    const __m256d du = _mm256_add_pd(zd, _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(grp.wt[hh], _mm256_cvtps_pd(lo_x)),
+                                                                     grp.sx[hh]), grp.w[hh]));
+    const __m256d dv = _mm256_add_pd(zd, _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(grp.wt[hh], _mm256_cvtps_pd(lo_y)),
+                                                                     grp.sy[hh]), grp.h[hh]));
+    const __m256d dD = _mm256_add_pd(zd, _mm256_mul_pd(grp.dscale[hh], _mm256_cvtps_pd(lo_v)));
+    _mm256_store_pd(ou + 4 * hh, _mm256_add_pd(zd, du));
+    _mm256_store_pd(ov + 4 * hh, _mm256_add_pd(zd, dv));
+    _mm256_store_pd(oD + 4 * hh, dD);
+    _mm256_store_pd(oau + 4 * hh, _mm256_add_pd(zd, _mm256_mul_pd(grp.offset[hh], du)));
+    _mm256_store_pd(oav + 4 * hh, _mm256_add_pd(zd, _mm256_mul_pd(grp.offset[hh], dv)));
+  }
+  for (int j = 0; j < 8; ++j) {
+    if (!(live >> j & 1)) continue;
+    if (out.uv) out.uv[2 * e[j]] = static_cast<float>(ou[j]), out.uv[2 * e[j] + 1] = static_cast<float>(ov[j]);
+    if (out.D) out.D[e[j]] = static_cast<float>(oD[j]);
+    if (out.axis) out.axis[2 * e[j]] = static_cast<float>(oau[j]), out.axis[2 * e[j] + 1] = static_cast<float>(oav[j]);
+  }
+}
+
+// The stochastic backward of the points idx[0, n) by groups_of_eight, as many as fit (returned); groups
+// prepare_back_draws8 leaves to the scalar loop go point by point through one, in their place in the order.
+template <int CC, bool kBorder, typename One>
+__attribute__((target("avx2,fma"))) int64_t backward_draws_range8(
+    const int64_t* idx, int64_t n, int64_t C, const std::vector<Level>& L, const std::vector<const float*>& lp,
+    const float* puv, const float* pd, const int64_t* pc, const float* pa, const float* pg, const Grads<float>& out,
+    int64_t gsc, int64_t gsm, int64_t wrap_u, int64_t wrap_v, double border, const ReadOptions& opts, One&& one) {
+  const int64_t end = n / 8 * 8;
+  groups_of_eight<BackDraw8>(
+      0, end,
+      [&](int64_t s0, BackDraw8& g) __attribute__((target("avx2,fma"))) {
+        prepare_back_draws8<CC>(idx + s0, C, L, lp, puv, pd, pc, pa, out, wrap_u, wrap_v, opts, g);
+      },
+      [&](const BackDraw8& g, int64_t s0) __attribute__((target("avx2,fma"))) {
+        if (g.vec)
+          backward_draws8<CC, kBorder>(g, idx + s0, C, L, lp, pg, out, gsc, gsm, border);
+        else
+          for (int j = 0; j < 8; ++j) one(idx[s0 + j]);
+      });
+  return end;
+}
+
 constexpr int64_t kMaxTaps8 = 16;  // the most taps a point of backward_taps8 (its held scatter: 16 KB at C = 4)
 
 // The backward of eight points e[0..8) with N_j taps each (anisotropic, auto: count pc, axis pa; float32, the
@@ -1187,7 +1785,10 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
   Tensor guv = need_uv ? zeros({M, 2}, options_of(uv)) : Tensor();
   Tensor gD = need_D ? zeros({M}, options_of(uv)) : Tensor();
   Tensor gax = need_axis ? zeros({M, 2}, options_of(uv)) : Tensor();
-  const bool simd = simd_taps(uv, count, levels), simd_n = simd_levels(uv, levels) && count.numel() != 0;
+  const bool sto = opts.stochastic;  // backward_draw(s8) (why: forward)
+  const bool sto_simd = sto && simd_levels(uv, levels);
+  const bool simd = !sto && simd_taps(uv, count, levels);
+  const bool simd_n = !sto && simd_levels(uv, levels) && count.numel() != 0;
   DT_DISPATCH_FLOATING_TYPES(uv.scalar_type(), "mip_read_backward", [&] {
     std::vector<const scalar_t*> lp;
     for (const auto& t : levels) lp.push_back(t.mutable_data_ptr<scalar_t>());
@@ -1206,6 +1807,9 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
       bands = scale_bands(L[0].h);
       std::vector<double> inv_h(K);
       for (int64_t k = 0; k < K; ++k) inv_h[k] = 1.0 / static_cast<double>(L[k].h);
+      // A stochastic draw writes rows of one of the levels and probes the deterministic filter reads (its
+      // level, floor(D) or floor(D) + 1, and its probe on the axis): the deterministic key covers them, and
+      // costs no draw (measured: drawing each point again for its key was as long as its backward).
       auto key_of = [&](int64_t e, char* rd) {
         const Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
         const int64_t N = tap_count(pc, e);
@@ -1218,7 +1822,7 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
       std::vector<char> read;
 #if DT_HAVE_AVX2
       if constexpr (std::is_same_v<scalar_t, float>) {
-        if ((simd || simd_n) && wrap_v != MIRROR && bands.scales > 0) {
+        if ((simd || simd_n || sto_simd) && wrap_v != MIRROR && bands.scales > 0) {
           std::vector<double> hd(K);
           for (int64_t k = 0; k < K; ++k) hd[k] = static_cast<double>(L[k].h);
           read = band_key_ranges(M, K, keys, [&](int64_t lo, int64_t hi, int32_t* out, char* rd) {
@@ -1244,6 +1848,41 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
       };
       // The points idx[0, n): by eight where the eight-point path takes them, else one at a time.
       auto run = [&](const int64_t* idx, int64_t n) {
+#if DT_HAVE_AVX2
+        if constexpr (std::is_same_v<scalar_t, float>) {
+          if (sto_simd) {
+            auto one_draw = [&](int64_t e) {
+              Placed<scalar_t> q;
+              place_draw(opts, e, L, puv, pd, pc, pa, wrap_u, wrap_v, q);
+              backward_draw<scalar_t, CC, kB>(q, e, C, L, lp, pg, out, gsc, gsm, border);
+            };
+            const int64_t end = backward_draws_range8<CC, kB>(idx, n, C, L, lp, puv, pd, pc, pa, pg, out, gsc, gsm,
+                                                              wrap_u, wrap_v, border, opts, one_draw);
+            for (int64_t i = end; i < n; ++i) one_draw(idx[i]);
+            return;
+          }
+        }
+#endif
+        if (sto) {  // placed a block ahead and prefetched (forward_draws)
+          Placed<scalar_t> blk[2][kDrawBlock];
+          auto fill = [&](int64_t i0, Placed<scalar_t>* q) {
+            const int64_t m = std::min<int64_t>(kDrawBlock, n - i0);
+            for (int64_t i = 0; i < m; ++i) {
+              place_draw(opts, idx[i0 + i], L, puv, pd, pc, pa, wrap_u, wrap_v, q[i]);
+              prefetch_draw<scalar_t>(q[i], C, L, lp, out.gp.data());
+            }
+            return m;
+          };
+          int cur = 0;
+          int64_t m = n > 0 ? fill(0, blk[0]) : 0;
+          for (int64_t i0 = 0; m > 0; i0 += kDrawBlock, cur ^= 1) {
+            const int64_t next = i0 + kDrawBlock < n ? fill(i0 + kDrawBlock, blk[cur ^ 1]) : 0;
+            for (int64_t i = 0; i < m; ++i)
+              backward_draw<scalar_t, CC, kB>(blk[cur][i], idx[i0 + i], C, L, lp, pg, out, gsc, gsm, border);
+            m = next;
+          }
+          return;
+        }
         int64_t i = 0;
 #if DT_HAVE_AVX2
         if constexpr (std::is_same_v<scalar_t, float>) {
