@@ -19,7 +19,6 @@ pinned torch.
 from __future__ import annotations
 
 import argparse
-import glob
 import os
 import shutil
 import subprocess

@@ -15,7 +15,7 @@ from typing import Optional, Union
 import torch
 from torch import Tensor
 
-from .._checks import broadcast_batch, check_float, check_same, describe
+from .._checks import broadcast_batch, check_float, check_same
 from ..texture import Mipmap, sample
 from ..texture.options import MIP_FILTERS, check_filter
 from ..mapping.common import EPS

@@ -33,10 +33,8 @@ from __future__ import annotations
 
 import argparse
 import glob
-import math
 import os
 import re
-import sys
 import time
 from pathlib import Path
 

@@ -51,26 +51,6 @@ DRAWS = (1, 2, 4, 8, 16, 32)  # level-0 footprint draws
 FILTER_DRAWS = (1, 4, 16)  # the stochastic filters' draws (their torch path is slower)
 
 
-def bump_normal_map(size: int = 512, seed: int = 0) -> torch.Tensor:
-    """[1, 3, size, size] tangent-space normal map (encoded in [0, 1]) of a random band-limited height field."""
-    g = torch.Generator().manual_seed(seed)
-    f = torch.fft.fftfreq(size, d=1.0 / size)
-    fy, fx = torch.meshgrid(f, f, indexing="ij")
-    r = torch.sqrt(fx ** 2 + fy ** 2)
-    band = ((r >= 24) & (r <= 96)).double()
-    spec = torch.complex(torch.randn(size, size, generator=g, dtype=torch.float64),
-                         torch.randn(size, size, generator=g, dtype=torch.float64)) * band
-    h = torch.fft.ifft2(spec).real
-    h = h / h.std()
-    # Slopes of about 0.35 (20 degrees): bumps a tight lobe resolves, normals a filter flattens.
-    amp = 0.35 / (2 * math.pi * 60 / size)
-    hx = (torch.roll(h, -1, 1) - torch.roll(h, 1, 1)) / 2 * amp
-    hy = (torch.roll(h, -1, 0) - torch.roll(h, 1, 0)) / 2 * amp
-    n = torch.stack([-hx, -hy, torch.ones_like(h)], 0)
-    n = n / n.norm(dim=0, keepdim=True)
-    return ((n + 1) / 2).float()[None]
-
-
 def height_field(size: int = 512, seed: int = 0) -> torch.Tensor:
     """[size, size] float64 random band-limited height field (24-96 cycles across), in texels, slopes ~0.35."""
     g = torch.Generator().manual_seed(seed)

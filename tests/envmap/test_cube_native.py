@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from difftex.envmap import cube_mipmap, cube_to_direction, cubemap
-from difftex.envmap.cube import _NativeFront, _NativeRead, _native_kernel, _ring_tables, _gutter_table
+from difftex.envmap.cube import _NativeFront, _native_kernel, _ring_tables, _gutter_table
 from difftex import _native as native
 from tests.conftest import use_backend
 from tests.envmap.test_cube import random_dirs, tangent_derivs

@@ -3,7 +3,6 @@ needs the peers extra and runs in the benchmark, not here)."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 
 import difftex

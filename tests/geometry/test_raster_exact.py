@@ -6,7 +6,6 @@ from __future__ import annotations
 import functools
 import itertools
 
-import numpy as np
 import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
@@ -543,7 +542,7 @@ def test_four_pixel_row_loop_matches_scalar_path(dtype, cull):
     # The z-buffer's AVX2 row loop (raster.cpp exact_row_avx2): the same ids and float64 depths as the scalar
     # loop and the torch path, on big triangles (spans solved per row), small ones (boxes tested per centre),
     # odd widths (masked lanes past the last column) and coplanar overlaps (ties go to the lowest id).
-    from difftex.geometry.raster import _subpixel_bits, _visibility
+    from difftex.geometry.raster import _visibility
     from difftex import _native as native
 
     kernel = native.load()
