@@ -170,6 +170,24 @@ void dynamic_for(int64_t n, Run&& run) {
 
 inline int64_t floor_div(int64_t a, int64_t d) { return a >= 0 ? a / d : -((-a + d - 1) / d); }
 
+// The columns i in [lo, hi] of a row where all three exact edge functions
+// E_k + s_k i reach their thresholds thr_k (E affine in the column): each
+// edge bounds i from one side, solved exactly; lo > hi where none is inside.
+template <typename Thr>
+inline void row_span(int64_t E0, int64_t E1, int64_t E2, int64_t s0, int64_t s1, int64_t s2, const Thr& thr,
+                     int64_t& lo, int64_t& hi) {
+  const int64_t Es[3] = {E0, E1, E2}, ss[3] = {s0, s1, s2};
+  for (int k = 0; k < 3 && lo <= hi; ++k) {
+    const int64_t d = Es[k] - thr[k];  // inside where d + ss[k] * i >= 0
+    if (ss[k] > 0)
+      lo = std::max(lo, -floor_div(d, ss[k]));
+    else if (ss[k] < 0)
+      hi = std::min(hi, floor_div(d, -ss[k]));
+    else if (d < 0)
+      hi = -1;
+  }
+}
+
 struct Ctx {
   const void* pos;  // [V, 4] of this batch item, float64 or (f32) float32
   bool f32;
@@ -1011,16 +1029,7 @@ std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int6
                   // Wider boxes: first the row's span, as below.
                   int64_t lo = 0, hi = c1 - c0;
                   if (hi >= 8) {
-                    const int64_t Es[3] = {E0, E1, E2}, ss[3] = {s0, s1, s2};
-                    for (int k = 0; k < 3 && lo <= hi; ++k) {
-                      const int64_t d = Es[k] - e.thr[k];
-                      if (ss[k] > 0)
-                        lo = std::max(lo, -floor_div(d, ss[k]));
-                      else if (ss[k] < 0)
-                        hi = std::min(hi, floor_div(d, -ss[k]));
-                      else if (d < 0)
-                        hi = -1;
-                    }
+                    row_span(E0, E1, E2, s0, s1, s2, e.thr, lo, hi);
                     if (lo > hi) continue;
                   }
                   const int64_t q = (r - R0) * Wl;
@@ -1038,16 +1047,7 @@ std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int6
                 // Wider boxes: the row's span solved exactly per edge (E is
                 // affine in the column, steps s_k), then no test per pixel.
                 int64_t lo = 0, hi = c1 - c0;
-                const int64_t Es[3] = {E0, E1, E2}, ss[3] = {s0, s1, s2};
-                for (int k = 0; k < 3 && lo <= hi; ++k) {
-                  const int64_t d = Es[k] - e.thr[k];  // inside where d + ss[k] * i >= 0
-                  if (ss[k] > 0)
-                    lo = std::max(lo, -floor_div(d, ss[k]));
-                  else if (ss[k] < 0)
-                    hi = std::min(hi, floor_div(d, -ss[k]));
-                  else if (d < 0)
-                    hi = -1;
-                }
+                row_span(E0, E1, E2, s0, s1, s2, e.thr, lo, hi);
                 for (int64_t c = c0 + lo; c <= c0 + hi; ++c) frag(r * Wl + c, (z0 + zx * (xsl[c] - x0)) + dy, f);
               }
             } else {

@@ -892,6 +892,32 @@ struct Grads {
   scalar_t *uv, *D, *axis;
 };
 
+// One bilinear tap's backward over the C channels of level lv (texels p, level gradient gk, null where
+// not needed), the output gradients g: the texel gradients g * wl * (bilinear weight) scattered into gk,
+// and the g-weighted sums of the tap's slopes along x and y (per texel of the level) and of its value,
+// which the callers turn into uv and level derivatives.
+template <typename scalar_t, bool kBorder>
+DT_INLINE void tap_backward(const Bilinear& b, const Level& lv, const scalar_t* p, scalar_t* gk, const scalar_t* g,
+                            int64_t C, scalar_t wl, scalar_t bv, scalar_t& sx, scalar_t& sy, scalar_t& sv) {
+  const scalar_t fx = static_cast<scalar_t>(b.fx), fy = static_cast<scalar_t>(b.fy);
+  const scalar_t w[4] = {(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy};
+  sx = 0, sy = 0, sv = 0;
+  for (int64_t c = 0; c < C; ++c) {
+    const scalar_t* pp = p + c * lv.plane;
+    scalar_t t[4];
+    for (int q = 0; q < 4; ++q) t[q] = !kBorder || b.inside[q] ? pp[b.idx[q]] : bv;
+    sx += g[c] * ((1 - fy) * (t[1] - t[0]) + fy * (t[3] - t[2]));
+    sy += g[c] * ((1 - fx) * (t[2] - t[0]) + fx * (t[3] - t[1]));
+    sv += g[c] * (w[0] * t[0] + w[1] * t[1] + w[2] * t[2] + w[3] * t[3]);
+    if (gk != nullptr) {
+      scalar_t* gq = gk + c * lv.plane;
+      const scalar_t gw = g[c] * wl;
+      for (int q = 0; q < 4; ++q)
+        if (!kBorder || b.inside[q]) gq[b.idx[q]] += gw * w[q];
+    }
+  }
+}
+
 // Point e's backward: its uv / D / axis gradients, and its level gradients
 // scattered into out.gp; CC and kBorder as in forward_range.
 template <typename scalar_t, int CC, bool kBorder>
@@ -925,26 +951,8 @@ DT_INLINE void backward_point(int64_t e, int64_t Cdyn, const std::vector<Level>&
       const int64_t k = r.k[j];
       const Level& lv = L[k];
       Bilinear b = taps_folded(fu, fv, lv.h, lv.w, wrap_u, wrap_v);
-      const scalar_t fx = static_cast<scalar_t>(b.fx), fy = static_cast<scalar_t>(b.fy);
-      const scalar_t w[4] = {(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy};
-      const scalar_t wl = static_cast<scalar_t>(r.wt[j]);
-      const scalar_t* p = lp[k];
-      scalar_t* gk = out.gp[k];
-      scalar_t sx = 0, sy = 0, sv = 0;
-      for (int64_t c = 0; c < C; ++c) {
-        const scalar_t* pp = p + c * lv.plane;
-        scalar_t t[4];
-        for (int q = 0; q < 4; ++q) t[q] = !kBorder || b.inside[q] ? pp[b.idx[q]] : bv;
-        sx += g[c] * ((1 - fy) * (t[1] - t[0]) + fy * (t[3] - t[2]));
-        sy += g[c] * ((1 - fx) * (t[2] - t[0]) + fx * (t[3] - t[1]));
-        sv += g[c] * (w[0] * t[0] + w[1] * t[1] + w[2] * t[2] + w[3] * t[3]);
-        if (gk != nullptr) {
-          scalar_t* gq = gk + c * lv.plane;
-          const scalar_t gw = g[c] * wl;
-          for (int q = 0; q < 4; ++q)
-            if (!kBorder || b.inside[q]) gq[b.idx[q]] += gw * w[q];
-        }
-      }
+      scalar_t sx, sy, sv;
+      tap_backward<scalar_t, kBorder>(b, lv, lp[k], out.gp[k], g, C, static_cast<scalar_t>(r.wt[j]), bv, sx, sy, sv);
       tdu += r.wt[j] * sx * b.sx * static_cast<double>(lv.w);
       tdv += r.wt[j] * sy * b.sy * static_cast<double>(lv.h);
       dD += r.dwt[j] * sv;
@@ -986,27 +994,9 @@ DT_INLINE void backward_draw(const Placed<scalar_t>& q, int64_t e, int64_t Cdyn,
   if (!any) return;
   const Level& lv = L[q.k];
   const Bilinear& b = q.b;
-  const scalar_t fx = static_cast<scalar_t>(b.fx), fy = static_cast<scalar_t>(b.fy);
-  const scalar_t w[4] = {(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy};
   const double wt = static_cast<double>(q.scale);
-  const scalar_t wl = static_cast<scalar_t>(wt);
-  const scalar_t* p = lp[q.k];
-  scalar_t* gk = out.gp[q.k];
-  scalar_t sx = 0, sy = 0, sv = 0;
-  for (int64_t c = 0; c < C; ++c) {
-    const scalar_t* pp = p + c * lv.plane;
-    scalar_t t[4];
-    for (int r = 0; r < 4; ++r) t[r] = !kBorder || b.inside[r] ? pp[b.idx[r]] : bv;
-    sx += g[c] * ((1 - fy) * (t[1] - t[0]) + fy * (t[3] - t[2]));
-    sy += g[c] * ((1 - fx) * (t[2] - t[0]) + fx * (t[3] - t[1]));
-    sv += g[c] * (w[0] * t[0] + w[1] * t[1] + w[2] * t[2] + w[3] * t[3]);
-    if (gk != nullptr) {
-      scalar_t* gq = gk + c * lv.plane;
-      const scalar_t gw = g[c] * wl;
-      for (int r = 0; r < 4; ++r)
-        if (!kBorder || b.inside[r]) gq[b.idx[r]] += gw * w[r];
-    }
-  }
+  scalar_t sx, sy, sv;
+  tap_backward<scalar_t, kBorder>(b, lv, lp[q.k], out.gp[q.k], g, C, static_cast<scalar_t>(wt), bv, sx, sy, sv);
   double du = 0, dv = 0, dD = 0;
   du += wt * sx * b.sx * static_cast<double>(lv.w);
   dv += wt * sy * b.sy * static_cast<double>(lv.h);
