@@ -108,17 +108,19 @@ class Kernel:
                                             need.D, need.axis)
         return (_read(gl), *rest)
 
-    def stochastic_forward(self, levels, uv, D, axis, count, seed: int, roles: int, first: int,
-                           opts: ReadOptions) -> Tensor:
-        return self._ops.stochastic_taps_forward(levels, uv, D, axis, count, seed, roles, first, opts.wrap_u,
-                                                 opts.wrap_v, float(opts.border))
+    def stochastic_forward(self, levels, uv, D, seed: int, first: int, strata: int, opts: ReadOptions) -> Tensor:
+        return self._ops.stochastic_taps_forward(levels, uv, D, seed, first, strata, opts.wrap_u, opts.wrap_v,
+                                                 float(opts.border))
 
-    def stochastic_backward(self, levels, uv, D, axis, count, grad, seed: int, roles: int, first: int,
-                            opts: ReadOptions, need: TapNeeds):
-        gl, *rest = self._ops.stochastic_taps_backward(levels, uv, D, axis, count, grad, seed, roles, first,
-                                                       opts.wrap_u, opts.wrap_v, float(opts.border), need.levels,
-                                                       need.uv, need.D, need.axis)
+    def stochastic_backward(self, levels, uv, D, grad, seed: int, first: int, strata: int, opts: ReadOptions,
+                            need: TapNeeds):
+        gl, *rest = self._ops.stochastic_taps_backward(levels, uv, D, grad, seed, first, strata, opts.wrap_u,
+                                                       opts.wrap_v, float(opts.border), need.levels, need.uv,
+                                                       need.D)
         return (_read(gl), *rest)
+
+    def probe_offsets(self, count: Tensor, like: Tensor, seed: int, first: int, strata: int) -> Tensor:
+        return self._ops.probe_offsets(count, like, seed, first, strata)
 
     def front(self, dx, dy, bias, *, bias0, height, width, levels, kind, max_aniso, tolerance):
         return self._ops.tap_front(dx, dy, bias, bias0, height, width, levels, kind, max_aniso, tolerance)
@@ -330,14 +332,17 @@ def _register_fakes() -> None:
                 torch.empty_like(D) if need_D else None, torch.empty_like(uv) if need_axis else None)
 
     @register_fake("difftex::stochastic_taps_forward")
-    def _(levels, uv, D, axis, count, seed, roles, first, wrap_u, wrap_v, border):
+    def _(levels, uv, D, seed, first, strata, wrap_u, wrap_v, border):
         return like(uv, levels[0].shape[0], uv.shape[0])
 
     @register_fake("difftex::stochastic_taps_backward")
-    def _(levels, uv, D, axis, count, grad, seed, roles, first, wrap_u, wrap_v, border, need_levels, need_uv,
-          need_D, need_axis):
+    def _(levels, uv, D, grad, seed, first, strata, wrap_u, wrap_v, border, need_levels, need_uv, need_D):
         return (level_grads(levels, uv.dtype), torch.empty_like(uv) if need_uv else None,
-                torch.empty_like(D) if need_D else None, torch.empty_like(uv) if need_axis else None)
+                torch.empty_like(D) if need_D else None)
+
+    @register_fake("difftex::probe_offsets")
+    def _(count, like_, seed, first, strata):
+        return like_.new_empty(count.shape[0])
 
     @register_fake("difftex::tap_front")
     def _(dx, dy, bias, bias0, H, W, levels, kind, max_aniso, tolerance):

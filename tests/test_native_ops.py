@@ -16,7 +16,8 @@ from difftex import _native as native
 
 pytestmark = pytest.mark.skipif(native.load() is None, reason="native kernels not built")
 
-ALL_OPS = ("taps_forward", "taps_backward", "stochastic_taps_forward", "stochastic_taps_backward", "tap_front",
+ALL_OPS = ("taps_forward", "taps_backward", "stochastic_taps_forward", "stochastic_taps_backward", "probe_offsets",
+           "tap_front",
            "box2", "box2_adjoint", "ewa_forward", "ewa_backward", "sample_forward", "sample_backward", "raster",
            "raster_fragments", "raster_fused", "raster_fragments_backward", "cube_front", "cube_front_backward",
            "cube_read", "cube_read_backward", "sat_forward", "sat_backward", "ripmap_build", "ripmap_adjoint",
@@ -65,10 +66,10 @@ def recorded():
             t, u = tex.clone().requires_grad_(), uv.clone().requires_grad_()
             a, b = dx.clone().requires_grad_(), dy.clone().requires_grad_()
             difftex.sample(t, u, filter=f, uv_dx=a, uv_dy=b).sum().backward()
-        for f in ("trilinear", "anisotropic"):  # one draw a pixel: the stochastic taps
+        for f in ("trilinear", "anisotropic"):  # stratified draws: the stochastic taps, the probes' offsets
             t, u = tex.clone().requires_grad_(), uv.clone().requires_grad_()
             a = dx.clone().requires_grad_()
-            difftex.sample(t, u, filter=f, uv_dx=a, uv_dy=dy, stochastic=1, generator=g).sum().backward()
+            difftex.sample(t, u, filter=f, uv_dx=a, uv_dy=dy, stochastic=2, generator=g).sum().backward()
         cube = torch.rand(1, 6, 3, 16, 16, generator=g, dtype=torch.float64, requires_grad=True)
         dirs = torch.randn(1, 4, 5, 3, generator=g, dtype=torch.float64, requires_grad=True)
         ddx = (torch.randn(1, 4, 5, 3, generator=g, dtype=torch.float64) * 0.1).requires_grad_()

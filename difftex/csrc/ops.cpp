@@ -85,36 +85,41 @@ std::tuple<std::vector<Tensor>, OptTensor, OptTensor, OptTensor> taps_backward(
   return {level_list(gl, shapes, uv.scalar_type()), opt(guv), opt(gD), opt(gax)};
 }
 
-// taps.cpp, stochastic: one draw a point (ReadOptions::stochastic), its uniforms hashed from (seed, point,
-// role) inside the kernel. seed is the int64 that filters/stochastic.py draws from the torch generator (its
-// bits taken as unsigned).
-ReadOptions stochastic_options(int64_t seed, int64_t roles, int64_t first, int64_t wrap_u, int64_t wrap_v,
+// taps.cpp, stochastic: one trilinear draw a point (ReadOptions::stochastic), its uniform hashed from
+// (seed, point) inside the kernel and stratified over the strata draws of a point. seed is the int64 that
+// filters/stochastic.py draws from the torch generator (its bits taken as unsigned).
+ReadOptions stochastic_options(int64_t seed, int64_t first, int64_t strata, int64_t wrap_u, int64_t wrap_v,
                                double border) {
-  DT_CHECK(roles >= 1, "difftex: roles must be >= 1, got ", roles);
   DT_CHECK(first >= 0, "difftex: first must be >= 0, got ", first);
+  DT_CHECK(strata >= 1, "difftex: strata must be >= 1, got ", strata);
   ReadOptions o = read_options(wrap_u, wrap_v, border, false, false);
   o.stochastic = true;
   o.seed = static_cast<uint64_t>(seed);
-  o.roles = roles;
   o.first = first;
+  o.strata = strata;
   return o;
 }
 
-Tensor stochastic_taps_forward(std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis, Tensor count,
-                               int64_t seed, int64_t roles, int64_t first, int64_t wrap_u, int64_t wrap_v,
-                               double border) {
-  return forward(std::move(levels), uv, D, axis, count, stochastic_options(seed, roles, first, wrap_u, wrap_v, border));
+Tensor stochastic_taps_forward(std::vector<Tensor> levels, Tensor uv, Tensor D, int64_t seed, int64_t first,
+                               int64_t strata, int64_t wrap_u, int64_t wrap_v, double border) {
+  const Tensor none = empty({0}, kInt64);
+  return forward(std::move(levels), uv, D, empty({0}, uv.scalar_type()), none,
+                 stochastic_options(seed, first, strata, wrap_u, wrap_v, border));
 }
 
-std::tuple<std::vector<Tensor>, OptTensor, OptTensor, OptTensor> stochastic_taps_backward(
-    std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis, Tensor count, Tensor grad, int64_t seed,
-    int64_t roles, int64_t first, int64_t wrap_u, int64_t wrap_v, double border, bool need_levels, bool need_uv,
-    bool need_D, bool need_axis) {
+std::tuple<std::vector<Tensor>, OptTensor, OptTensor> stochastic_taps_backward(
+    std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor grad, int64_t seed, int64_t first, int64_t strata,
+    int64_t wrap_u, int64_t wrap_v, double border, bool need_levels, bool need_uv, bool need_D) {
   const auto shapes = shapes_of(levels);
-  auto [gl, guv, gD, gax] = backward(std::move(levels), uv, D, axis, count, grad,
-                                     stochastic_options(seed, roles, first, wrap_u, wrap_v, border),
-                                     TapNeeds{need_levels, need_uv, need_D, need_axis});
-  return {level_list(gl, shapes, uv.scalar_type()), opt(guv), opt(gD), opt(gax)};
+  const Tensor none = empty({0}, kInt64);
+  auto [gl, guv, gD, gax] = backward(std::move(levels), uv, D, empty({0}, uv.scalar_type()), none, grad,
+                                     stochastic_options(seed, first, strata, wrap_u, wrap_v, border),
+                                     TapNeeds{need_levels, need_uv, need_D, false});
+  return {level_list(gl, shapes, uv.scalar_type()), opt(guv), opt(gD)};
+}
+
+Tensor probe_offsets_op(Tensor count, Tensor like, int64_t seed, int64_t first, int64_t strata) {
+  return probe_offsets(count, like, static_cast<uint64_t>(seed), first, strata);
 }
 
 // front.cpp
@@ -268,11 +273,12 @@ STABLE_TORCH_LIBRARY(difftex, m) {
   m.def("taps_backward(Tensor[] levels, Tensor uv, Tensor D, Tensor axis, Tensor count, Tensor grad, int wrap_u, "
         "int wrap_v, float border, bool nearest, bool d_grad, bool need_levels, bool need_uv, bool need_D, "
         "bool need_axis) -> (Tensor[], Tensor?, Tensor?, Tensor?)");
-  m.def("stochastic_taps_forward(Tensor[] levels, Tensor uv, Tensor D, Tensor axis, Tensor count, int seed, "
-        "int roles, int first, int wrap_u, int wrap_v, float border) -> Tensor");
-  m.def("stochastic_taps_backward(Tensor[] levels, Tensor uv, Tensor D, Tensor axis, Tensor count, Tensor grad, "
-        "int seed, int roles, int first, int wrap_u, int wrap_v, float border, bool need_levels, bool need_uv, "
-        "bool need_D, bool need_axis) -> (Tensor[], Tensor?, Tensor?, Tensor?)");
+  m.def("stochastic_taps_forward(Tensor[] levels, Tensor uv, Tensor D, int seed, int first, int strata, "
+        "int wrap_u, int wrap_v, float border) -> Tensor");
+  m.def("stochastic_taps_backward(Tensor[] levels, Tensor uv, Tensor D, Tensor grad, int seed, int first, "
+        "int strata, int wrap_u, int wrap_v, float border, bool need_levels, bool need_uv, bool need_D) "
+        "-> (Tensor[], Tensor?, Tensor?)");
+  m.def("probe_offsets(Tensor count, Tensor like, int seed, int first, int strata) -> Tensor");
   m.def("tap_front(Tensor dx, Tensor dy, Tensor bias, float bias0, int H, int W, int levels, int kind, "
         "float max_aniso, float tolerance) -> (Tensor, Tensor, Tensor)");
   m.def("box2(Tensor x) -> Tensor");
@@ -320,6 +326,7 @@ STABLE_TORCH_LIBRARY_IMPL(difftex, CPU, m) {
   m.impl("taps_backward", TORCH_BOX(&taps_backward));
   m.impl("stochastic_taps_forward", TORCH_BOX(&stochastic_taps_forward));
   m.impl("stochastic_taps_backward", TORCH_BOX(&stochastic_taps_backward));
+  m.impl("probe_offsets", TORCH_BOX(&probe_offsets_op));
   m.impl("tap_front", TORCH_BOX(&tap_front));
   m.impl("box2", TORCH_BOX(&box2_op));
   m.impl("box2_adjoint", TORCH_BOX(&box2_adjoint_op));

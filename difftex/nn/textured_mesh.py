@@ -42,13 +42,13 @@ class TexturedMesh(nn.Module):
             one would).
         decorrelate: with ``stochastic`` and gradients enabled, the image's
             value comes from one set of draws and its gradient from an
-            independent one (``a.detach() + b - b.detach()``): the gradient of an
-            L2 loss is then ``2 (a - y) db/dθ``, whose expectation is the
-            gradient of ``(E a - y)^2``. With one set (False), the
-            expectation of the loss is ``(E a - y)^2 + Var a``, and the
-            variance term pulls every texel towards its footprint's mean (a
-            blur the deterministic filter does not have). Twice the reads;
-            without gradients (evaluation) one set is read either way.
+            independent one (:func:`difftex.sample`'s ``decorrelate``): the
+            gradient of an L2 loss is then ``2 (a - y) db/dθ``, whose
+            expectation is the gradient of ``(E a - y)^2``. With one set
+            (False), the expectation of the loss is ``(E a - y)^2 + Var a``,
+            and the variance term pulls every texel towards its footprint's
+            mean (a blur the deterministic filter does not have). No extra
+            reads on the CPU's trilinear and anisotropic kernels.
         seed: seeds the draws' generator.
 
     Raises TypeError naming the argument for a texture that is not float32 /
@@ -173,11 +173,8 @@ class TexturedMesh(nn.Module):
         kw = dict(filter=self.filter, wrap=self.wrap, uv_dx=uv_dx, uv_dy=uv_dy, max_aniso=self.max_aniso,
                   lod_bias=self.lod_bias)
         if self.stochastic:
-            kw.update(stochastic=self.stochastic, generator=self.generator)
+            kw.update(stochastic=self.stochastic, generator=self.generator,
+                      decorrelate=self.decorrelate and torch.is_grad_enabled())
         image = sample(self.texture, uv, **kw)
-        if self.stochastic and self.decorrelate and torch.is_grad_enabled() and image.requires_grad:
-            slope = sample(self.texture, uv, **kw)
-            # Exactly the first draws' value (x - x is 0), the second draws' gradient.
-            image = image.detach() + (slope - slope.detach())
         image = torch.where(mask, image, image.new_tensor(self.background))
         return image, mask.to(image.dtype)

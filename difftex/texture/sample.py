@@ -12,7 +12,8 @@ from .filters.ewa import ewa_points
 from .filters.ripmap import ripmap_points
 from .filters.sat import sat_points
 from .filters.separable import separable_sample
-from .filters.stochastic import Stream, stochastic_ewa, stochastic_separable, stochastic_trilinear, stream
+from .filters.stochastic import (Stream, decorrelated, stochastic_anisotropic, stochastic_ewa, stochastic_separable,
+                                 stochastic_trilinear, stream)
 from .filters.trilinear import Levels, TexturePyramid, trilinear_points
 from .lod import ellipse, footprint
 from .options import (BOX_FILTERS, DEFAULT_TOLERANCE, MAX_ANISO, MIP_FILTERS, SEPARABLE, check_bias, check_filter,
@@ -38,6 +39,7 @@ def sample(
     tolerance: float = DEFAULT_TOLERANCE,
     stochastic: int = 0,
     generator: Optional[torch.Generator] = None,
+    decorrelate: bool = False,
 ) -> Tensor:
     """Sample a texture at uv coordinates.
 
@@ -94,25 +96,38 @@ def sample(
             of "anisotropic" at the same max_aniso on the test scenes.
         stochastic: 0 (default): the deterministic filter. k >= 1 (True
             is 1): stochastic texture filtering (Pharr et al. 2024), the
-            mean of k independent draws a pixel, each reading one tap drawn
+            mean of k stratified draws a pixel, each reading one tap drawn
             from the filter's own weights (3/4 of each draw; 1/4 uniform
             over the same taps, which keeps the gradients' variance finite):
             "trilinear" one bilinear tap on a level drawn by the blend
-            weight; "anisotropic" one probe of the line, then that; "ewa" a
-            level, then one texel drawn by its normalised Gaussian weight;
-            "bilinear" / "bicubic" one texel drawn by |weight| (the sign and
-            the normaliser carried). Other filters raise. Unbiased: the
-            expectation over the draws is the deterministic filter's value,
-            and the expectation of the gradient its gradient for texture,
-            uv, uv_dx, uv_dy and lod_bias (except at an exact integer
-            level, where the level derivative is 0); the variance falls as
-            1 / k (``difftex.texture.filters.stochastic``,
+            weight; "anisotropic" the trilinear tap of one probe of the
+            line, drawn uniformly; "ewa" a level, then one texel drawn by
+            its normalised Gaussian weight; "bilinear" / "bicubic" one texel
+            drawn by |weight| (the sign and the normaliser carried). Other
+            filters raise. Unbiased: the expectation over the draws is the
+            deterministic filter's value, and the expectation of the
+            gradient its gradient for texture, uv, uv_dx, uv_dy and
+            lod_bias (except at an exact integer level, where the level
+            derivative is 0). Draw j of a pixel's k takes its first uniform
+            (the probe, trilinear's level, EWA's texel, the texel along u)
+            in [j / k, (j + 1) / k): the variance falls at least as 1 / k,
+            and k anisotropic draws of a pixel with k probes are its
+            deterministic filter (``difftex.texture.filters.stochastic``,
             docs/stochastic.md).
         generator: the ``torch.Generator`` of the draws (on uv's device),
-            or None for torch's default generator. All draws come from one
-            ``torch.rand`` call per ``sample`` call, so a seeded generator
+            or None for torch's default generator. A call draws one 64-bit
+            seed from it (two with ``decorrelate``) and hashes every draw
+            from the seed and the draw's index, so a seeded generator
             repeats the result bit for bit, whatever the thread count.
             Ignored when ``stochastic`` is 0.
+        decorrelate: with ``stochastic``: the value from one set of draws,
+            its gradient from a second, independent one (same law; the
+            value is the one ``decorrelate=False`` gives with the same
+            generator state). A squared error's gradient ``2 (x - y) dx``
+            is then unbiased for that of the deterministic filter's error,
+            without the draws' variance as an extra smoothing term. Free on
+            the CPU's trilinear and anisotropic kernels (the backward draws
+            the second set); elsewhere the second set is evaluated too.
 
     Returns:
         [B, C, Ho, Wo], same dtype and device as the inputs.
@@ -156,6 +171,8 @@ def sample(
     border_value = check_number("border_value", border_value, -math.inf)
     tolerance = check_number("tolerance", tolerance, 0)
     draws = check_stochastic(stochastic, filter)
+    if not isinstance(decorrelate, bool):
+        raise TypeError(f"decorrelate: expected a bool, got {type(decorrelate).__name__}")
     if draws:
         check_generator(generator, uv)
     _, Ho, Wo, _ = uv.shape
@@ -172,7 +189,7 @@ def sample(
         # An empty image: nothing to read, but the result stays in the inputs' graph.
         parts = [t for t in (texture, uv, *derivs, bias) if isinstance(t, Tensor)]
         return sum(t.reshape(-1)[:0].reshape(B, C, Ho, Wo) for t in parts)
-    u = stream(filter, generator, uv.device) if draws else None
+    u = stream(filter, generator, uv.device, draws, decorrelate) if draws else None
     if filter in MIP_FILTERS:
         if pyramid is None:
             pyramid = texture
@@ -182,8 +199,9 @@ def sample(
         # k draws of each pixel as k neighbouring points, averaged.
         pts = uv.expand(B, -1, -1, -1).reshape(B, Ho * Wo, 2)
         pts = pts if draws == 1 else pts.repeat_interleave(draws, 1)
-        out = stochastic_separable(texture, pts, SEPARABLE[filter], wrap_u, wrap_v, border_value,
-                                   u.uniforms(B * Ho * Wo * draws, uv.device).view(B, Ho * Wo * draws, -1))
+        out = decorrelated(lambda s: stochastic_separable(
+            texture, pts, SEPARABLE[filter], wrap_u, wrap_v, border_value,
+            s.uniforms(B * Ho * Wo * draws, uv.device).view(B, Ho * Wo * draws, -1)), u)
         return out.view(B, C, Ho, Wo) if draws == 1 else out.view(B, C, Ho, Wo, draws).mean(-1)
     return separable_sample(texture, uv if uv.shape[0] == B else uv.expand(B, -1, -1, -1), SEPARABLE[filter],
                             wrap_u, wrap_v, border_value)
@@ -275,11 +293,15 @@ def _sample_mip(pyramid: Union[Mipmap, Tensor], uv: Tensor, uv_dx: Tensor, uv_dy
         if filter == "ewa":
             b = rep(bias) if isinstance(bias, Tensor) and bias.dim() == 1 else bias
             n = (pts.shape[0] if sl.stop is None else sl.stop) * k - first
-            out = stochastic_ewa(lv, rep(pts), type(fp)(*map(rep, fp)), type(ell)(*map(rep, ell)), b, max_aniso,
-                                 wrap_u, wrap_v, border, uk.uniforms(n, pts.device))
+            out = decorrelated(lambda s: stochastic_ewa(lv, rep(pts), type(fp)(*map(rep, fp)),
+                                                        type(ell)(*map(rep, ell)), b, max_aniso, wrap_u, wrap_v,
+                                                        border, s.uniforms(n, pts.device)), uk)
+        elif filter == "anisotropic":
+            if axis is None:  # one probe everywhere: every draw is the deterministic filter
+                return trilinear_points(lv, pts[sl], D[sl], wrap_u, wrap_v, border)
+            out = stochastic_anisotropic(lv, rep(pts), rep(D), uk, wrap_u, wrap_v, border, rep(axis), rep(count))
         else:
-            out = stochastic_trilinear(lv, rep(pts), rep(D), uk, wrap_u, wrap_v, border,
-                                       None if axis is None else rep(axis), None if count is None else rep(count))
+            out = stochastic_trilinear(lv, rep(pts), rep(D), uk, wrap_u, wrap_v, border)
         return out if k == 1 else out.view(out.shape[0], -1, k).mean(-1)
 
     def levels_of(i: int | None) -> Levels:

@@ -70,15 +70,20 @@ TEXTURE = checker_noise_texture(32, checks=4, noise=0.5, channels=2, dtype=torch
 SCENES = {"plane": (plane, "repeat"), "swirl": (swirl, ("mirror", "clamp"))}
 
 
-def run(filter: str, scene: str, k: int, seed: int, *, texture=TEXTURE, grads: bool = True):
-    """Values and gradients of one call: (value [1, C, H, W], d/dtexture, d/duv, d/duv_dx) of a fixed loss."""
+def run(filter: str, scene: str, k: int, seed: int, *, texture=TEXTURE, grads: bool = True, iid: bool = False):
+    """Values and gradients of one call: (value [1, C, H, W], d/dtexture, d/duv, d/duv_dx) of a fixed loss.
+
+    ``iid``: the mean of k independent draws (one draw each of k copies of the scene), not k stratified ones.
+    """
     make, wrap = SCENES[scene]
     uv, dx, dy = make(8 if filter == "ewa" else 12)  # EWA reads ~30 texels a draw on the torch path: fewer pixels
     tex = texture.clone().requires_grad_(grads)
     uv = uv.clone().requires_grad_(grads)
     dx = dx.clone().requires_grad_(grads)
     g = torch.Generator().manual_seed(seed)
-    out = sample(tex, uv, filter=filter, wrap=wrap, uv_dx=dx, uv_dy=dy, max_aniso=8, stochastic=k, generator=g)
+    copies, k = (k, 1) if iid and k > 1 else (1, k)
+    out = sample(tex, uv.expand(copies, -1, -1, -1), filter=filter, wrap=wrap, uv_dx=dx.expand(copies, -1, -1, -1),
+                 uv_dy=dy, max_aniso=8, stochastic=k, generator=g).mean(0, keepdim=True)
     if not grads:
         return (out.detach(),)
     # A fixed, sign-changing weighting of the pixels: its gradient is no plain sum.
@@ -87,19 +92,21 @@ def run(filter: str, scene: str, k: int, seed: int, *, texture=TEXTURE, grads: b
     return out.detach(), gt, gu, torch.zeros_like(dx) if gd is None else gd
 
 
-def groups(filter: str, scene: str, k: int, seed: int = 0, grads: bool = True):
+def groups(filter: str, scene: str, k: int, seed: int = 0, grads: bool = True, iid: bool = False):
     """GROUPS independent estimates of k draws each, stacked per output: a list of [GROUPS, ...].
 
     Values alone: one call over a batch of GROUPS copies of the scene (each batch entry draws its own);
-    with gradients, one call a group (each needs its own texture gradient).
+    with gradients, one call a group (each needs its own texture gradient), of k independent draws
+    where ``iid`` (``run``).
     """
     if not grads:
         make, wrap = SCENES[scene]
-        uv, dx, dy = (t.expand(GROUPS, -1, -1, -1) for t in make(8 if filter == "ewa" else 12))
+        copies, k = (k, 1) if iid and k > 1 else (1, k)
+        uv, dx, dy = (t.expand(GROUPS * copies, -1, -1, -1) for t in make(8 if filter == "ewa" else 12))
         out = sample(TEXTURE, uv, filter=filter, wrap=wrap, uv_dx=dx, uv_dy=dy, max_aniso=8, stochastic=k,
                      generator=torch.Generator().manual_seed(seed))
-        return [out.unsqueeze(1)]
-    parts = [run(filter, scene, k, seed * 1000 + i) for i in range(GROUPS)]
+        return [out.view(GROUPS, copies, *out.shape[1:]).mean(1, keepdim=True)]
+    parts = [run(filter, scene, k, seed * 1000 + i, iid=iid) for i in range(GROUPS)]
     return [torch.stack(p) for p in zip(*parts)]
 
 
@@ -109,10 +116,16 @@ CASES = [("trilinear", "plane"), ("trilinear", "swirl"), ("anisotropic", "plane"
 
 @pytest.mark.parametrize("filter,scene", CASES)
 def test_the_mean_of_the_draws_is_the_filter(filter, scene):
-    """Values and the texture, uv and uv_dx (level) gradients, z-checked on two scenes."""
+    """Values and the texture, uv and uv_dx (level) gradients, z-checked on two scenes.
+
+    Means of 4 independent draws: a mean of 4 stratified ones is unbiased as well (each stratum's draw is
+    the filter's draw restricted to it, test_stratified_draws), but its spread over 40 groups misleads the
+    z-check where one draw's stratum alone decides (trilinear's level: a rare two-valued outcome; at 40
+    groups z 6.9 on the plane's uv gradient, at 400 groups 2.5 with the error 2.3x smaller: no bias).
+    """
     exact = run(filter, scene, 0, 0)
     names = ("value", "texture grad", "uv grad", "uv_dx grad")
-    many = groups(filter, scene, 4)
+    many = groups(filter, scene, 4, iid=True)
     for name, s, e in zip(names, many, exact):
         if name == "uv_dx grad" and filter in ("bilinear", "bicubic"):
             assert e.abs().max() == 0 and s.abs().max() == 0  # single-level: no footprint
@@ -160,14 +173,80 @@ def test_one_texel_too_many_fails_the_check(monkeypatch):
     assert z_scores(bad, exact) > Z_BOUND
 
 
-@pytest.mark.parametrize("filter", ["trilinear", "ewa", "bicubic"])
+@pytest.mark.parametrize("filter", ["trilinear", "anisotropic", "ewa", "bicubic"])
 def test_variance_falls_as_one_over_k(filter):
+    """Independent draws: 1 / k. Stratified draws (``stochastic=k``): at most that, and below it."""
     scene = "swirl" if filter == "bicubic" else "plane"
-    var = {k: groups(filter, scene, k, seed=k, grads=False)[0].var(0).mean().item() for k in (1, 4)}
-    ratio = var[1] / var[4]
-    print(f"{filter}: variance k=1 / k=4 = {ratio:.2f}")
+    var = lambda k, iid: groups(filter, scene, k, seed=k + 10 * iid, grads=False, iid=iid)[0].var(0).mean().item()  # noqa: E731
+    one, iid, strat = var(1, False), var(4, True), var(4, False)
+    print(f"{filter}: variance of 1 draw / of the mean of 4: independent {one / iid:.2f}, stratified {one / strat:.2f}")
     # 4 expected; the ratio of two means of 128-288 per-pixel variances of 40 groups is good to about 10 %.
-    assert 3.0 < ratio < 5.3, f"{filter}: variance ratio k=1 / k=4 is {ratio:.2f}, expected 4"
+    assert 3.0 < one / iid < 5.3, f"{filter}: variance ratio k=1 / k=4 is {one / iid:.2f}, expected 4"
+    # Stratified: at least 1 / k (the same tolerance); far below it where the first uniform decides the draw
+    # (trilinear's level: 12.2, anisotropic's probe: 23.6; EWA 5.6 and bicubic 4.6, whose second uniform is not
+    # stratified).
+    assert one / strat > (8.0 if filter in ("trilinear", "anisotropic") else 3.0), \
+        f"{filter}: stratified variance ratio {one / strat:.2f}"
+
+
+def test_stratified_draws():
+    """Draw j of a point's k takes its first uniform in [j / k, (j + 1) / k); k anisotropic draws of points
+    with k probes (or a divisor of k) read each probe equally often: the deterministic filter, values and
+    gradients."""
+    u = st.hashed_uniforms(3, 6, 12, 2, strata=3)  # counters 6..17: draws j = 0, 1, 2, 0, ...
+    j = torch.arange(6, 18) % 3
+    assert bool(((u[:, 0] >= j / 3) & (u[:, 0] < (j + 1) / 3)).all())
+    assert torch.equal(u[:, 1], st.hashed_uniforms(3, 6, 12, 2)[:, 1])  # the other roles as they were
+    res = 10
+    r, c = torch.meshgrid(torch.arange(res, dtype=torch.float64), torch.arange(res, dtype=torch.float64),
+                          indexing="ij")
+    uv = torch.stack(((c + 0.5) * 0.11 + 0.05 * r, (r + 0.5) * 0.03), -1).unsqueeze(0)
+    dx = torch.tensor([0.11, 0.0], dtype=torch.float64).expand(1, res, res, 2)  # 4 : 1, 4 probes a pixel
+    dy = torch.tensor([0.0, 0.11 / 4], dtype=torch.float64).expand(1, res, res, 2)
+    for backend in ("native", "grid_sample"):
+        got = []
+        for k in (0, 4, 8, 2):
+            t, p = TEXTURE.clone().requires_grad_(), uv.clone().requires_grad_()
+            with difftex.backend(backend):
+                out = sample(t, p, filter="anisotropic", uv_dx=dx, uv_dy=dy, max_aniso=8, stochastic=k,
+                             generator=torch.Generator().manual_seed(1))
+            w = torch.linspace(-1, 2, out.numel(), dtype=out.dtype).view_as(out)
+            got.append([out.detach(), *torch.autograd.grad((out * w).sum(), (t, p))])
+        for exact in got[1:3]:
+            for a, b in zip(exact, got[0]):
+                torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+        assert (got[3][0] - got[0][0]).abs().max() > 1e-3  # 2 draws of 4 probes: not the filter
+
+
+@pytest.mark.parametrize("filter", ["trilinear", "anisotropic", "ewa", "bicubic", "bilinear"])
+@pytest.mark.parametrize("backend", ["native", "grid_sample"])
+def test_decorrelate_takes_the_value_from_one_seed_and_the_gradient_from_the_next(filter, backend):
+    """``decorrelate=True`` draws two seeds: its value is the plain call's (the first seed), its gradients
+    (texture, uv, uv_dx) those of a plain call on the second seed, bit for bit (the native kernels' backward
+    draws that set itself; the torch path evaluates it)."""
+    uv, dx, dy = swirl(8 if filter == "ewa" else 10)
+
+    def call(decorrelate, skip):
+        g = torch.Generator().manual_seed(21)
+        for _ in range(skip):
+            st.draw_seed(g, "cpu")
+        t, u, d = TEXTURE.clone().requires_grad_(), uv.clone().requires_grad_(), dx.clone().requires_grad_()
+        with difftex.backend(backend):
+            out = sample(t, u, filter=filter, wrap="mirror", uv_dx=d, uv_dy=dy, max_aniso=8, stochastic=2,
+                         generator=g, decorrelate=decorrelate)
+        w = torch.linspace(-1, 2, out.numel(), dtype=out.dtype).view_as(out)
+        return [out.detach(), *torch.autograd.grad((out * w).sum(), (t, u, d), allow_unused=True)]
+
+    both, first, second = call(True, 0), call(False, 0), call(False, 1)
+    assert torch.equal(both[0], first[0])
+    for a, b, c in zip(both[1:], second[1:], first[1:]):
+        if b is None:  # bilinear / bicubic: no footprint
+            assert a is None
+            continue
+        assert torch.equal(a, b)
+    assert not torch.equal(both[1], first[1])
+    with pytest.raises(TypeError, match="decorrelate: expected a bool, got int"):
+        sample(TEXTURE, uv, filter=filter, uv_dx=dx, uv_dy=dy, stochastic=1, decorrelate=1)
 
 
 def test_seeded_draws_repeat_bit_for_bit():

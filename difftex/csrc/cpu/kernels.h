@@ -21,16 +21,14 @@ struct ReadOptions {
   int64_t wrap_u, wrap_v;
   double border;
   bool nearest, d_grad;
-  // Stochastic texture filtering (filters/stochastic.py): instead of the
-  // filter, one draw a point: on the anisotropic line one probe drawn
-  // uniformly, then one level drawn by the defensive blend pmf, read
-  // bilinearly and weighted w(D) / p. The uniforms are common.h
-  // draw_uniform(seed, (first + e) * roles + role) for point e, the probe
-  // role 0 and the level role roles - 1 (stochastic.py ROLES, the same
-  // counters as its torch reference, so that the two draw alike).
+  // Stochastic trilinear filtering (filters/stochastic.py): instead of the
+  // filter, one draw a point (one tap, no counts): one level drawn by the
+  // defensive blend pmf, read bilinearly and weighted w(D) / p. Point e's
+  // uniform is common.h stratified_uniform(seed, first + e, strata) (the
+  // same counter as its torch reference, so that the two draw alike).
   bool stochastic = false;
   uint64_t seed = 0;
-  int64_t roles = 1, first = 0;
+  int64_t first = 0, strata = 1;
 };
 
 // The gradients the taps' backward computes.
@@ -53,6 +51,11 @@ Tensor forward(std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis,
 std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
     std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis, Tensor count,
     Tensor grad, const ReadOptions& opts, const TapNeeds& need);
+
+// taps.cpp: the probe of one stochastic anisotropic draw per point, as its
+// offset along the axis (tap_offset of probe floor(u N) of N = count[e], u
+// = stratified_uniform(seed, first + e, strata)): [M] in like's dtype.
+Tensor probe_offsets(Tensor count, Tensor like, uint64_t seed, int64_t first, int64_t strata);
 
 // front.cpp: the taps' footprint front end, no gradient.
 std::tuple<Tensor, Tensor, Tensor> front(Tensor dx, Tensor dy, Tensor bias,

@@ -38,8 +38,12 @@ What is drawn, per filter (``u`` [M, R] uniforms in [0, 1) per point, ``ROLES``)
   kernel's read (``trilinear_points`` with ``nearest_mip`` on the drawn
   integer level).
 - anisotropic: one of the N probes along the major axis, uniformly
-  (``u[:, 0]``; the weights are all 1/N, so ``w / p = 1``), then the
-  trilinear draw there.
+  (``u[:, 0]``; the weights are all 1/N, so ``w / p = 1``), and the
+  deterministic trilinear tap there (both levels blended, no level draw):
+  in the main job's fit the level draw was most of the noise that hurts
+  (2.8 dB of texture PSNR at one draw a pixel, docs/stochastic.md), for
+  one bilinear tap more a draw. Where every point has one probe the draw
+  is the deterministic filter.
 - ewa: the level as trilinear, then one texel of that level's ellipse
   by the exact normalised Gaussian weights of the deterministic filter,
   mixed (``u[:, 0]``, an inverse-CDF walk over the ellipse's texels, the
@@ -49,6 +53,25 @@ What is drawn, per filter (``u`` [M, R] uniforms in [0, 1) per point, ``ROLES``)
   (``u[:, 1]``): the separable weights make the pmf a product, so two
   independent draws draw it exactly.
 
+The k draws of a point (``sample``'s ``stochastic=k``) are stratified in
+their first uniform: draw j takes it in ``[j / k, (j + 1) / k)``
+(``hashed_uniforms``' ``strata``). Each stratum holds one draw, so the
+mean of the k stays unbiased and its variance is at most that of k
+independent draws; k stratified anisotropic draws of a point with k
+probes (or with a divisor of k) read every probe equally often: the
+deterministic filter exactly.
+
+Decorrelated gradients (``Stream.grad_seed``; ``sample``'s
+``decorrelate``): the value comes from one set of draws and the gradient
+from another, independent one of the same law. A squared error of a draw
+``x`` has the expectation ``(E x - y)^2 + Var x``; its gradient
+``2 (x - y) dx`` with ``x`` and ``dx`` from independent draws is unbiased
+for that of ``(E x - y)^2``, without the variance term that would pull a
+fit towards textures smooth inside each footprint. The native kernels'
+backwards draw the gradient's set from its seed in place of the value's,
+so decorrelating costs nothing; the torch path evaluates both
+(``decorrelated``).
+
 Not unbiased: at an exact integer level D (a set of measure zero for a
 continuous footprint) the level-blend derivative, which the deterministic
 filter takes from below (``t_k - t_(k-1)``, DESIGN.md), is 0 here (one
@@ -57,7 +80,7 @@ unbiased; the tests check it exactly by enumerating the draws.
 """
 from __future__ import annotations
 
-from typing import NamedTuple, Optional, Sequence
+from typing import Callable, NamedTuple, Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -73,7 +96,7 @@ from .separable import separable_sample
 from .trilinear import Levels, TexturePyramid, _native_args, trilinear_points
 
 # Uniforms per draw and filter, in this order: the level's last where there is one.
-ROLES = {"trilinear": ("level",), "anisotropic": ("probe", "level"), "ewa": ("texel", "level"),
+ROLES = {"trilinear": ("level",), "anisotropic": ("probe",), "ewa": ("texel", "level"),
          "bilinear": ("texel along u", "texel along v"), "bicubic": ("texel along u", "texel along v")}
 # Every draw's pmf is mixed with the uniform one over its outcomes in this proportion (``defensive``), so
 # that no outcome whose weight or weight derivative is nonzero has a tiny probability: the gradient terms
@@ -95,7 +118,8 @@ def _shift_right(x: Tensor, s: int) -> Tensor:
     return (x >> s) & ((1 << (64 - s)) - 1)
 
 
-def hashed_uniforms(seed: int, first: int, count: int, roles: int, device: torch.device | str = "cpu") -> Tensor:
+def hashed_uniforms(seed: int, first: int, count: int, roles: int, device: torch.device | str = "cpu",
+                    strata: int = 1) -> Tensor:
     """Uniforms in [0, 1) of the draw counters ``first .. first + count - 1``: [count, roles] float64.
 
     Entry (i, r) is uniform number ``(first + i) * roles + r`` of ``seed``:
@@ -105,13 +129,20 @@ def hashed_uniforms(seed: int, first: int, count: int, roles: int, device: torch
     depends on (seed, counter) alone, so the native kernel
     (``csrc/cpu/common.h`` draw_uniform, the same arithmetic on uint64)
     draws the same ones inside its loop, in any order, on any thread.
+    With ``strata`` = k > 1, the first uniform of draw d = first + i moves
+    into the stratum ``[j / k, (j + 1) / k)`` of ``j = d mod k`` (common.h
+    stratified_uniform): the k draws of a point are consecutive counters.
     """
     ctr = torch.arange(first * roles, (first + count) * roles, dtype=torch.int64, device=device)
     z = (ctr + 1) * _GAMMA + seed
     z = (z ^ _shift_right(z, 30)) * _MIX1
     z = (z ^ _shift_right(z, 27)) * _MIX2
     z = z ^ _shift_right(z, 31)
-    return (_shift_right(z, 11).to(torch.float64) * 2.0 ** -53).view(count, roles)
+    u = (_shift_right(z, 11).to(torch.float64) * 2.0 ** -53).view(count, roles)
+    if strata > 1:
+        j = torch.arange(first, first + count, dtype=torch.int64, device=device) % strata
+        u[:, 0] = (j.to(torch.float64) + u[:, 0]) / strata
+    return u
 
 
 def draw_seed(generator: Optional[torch.Generator], device: torch.device | str) -> int:
@@ -121,27 +152,54 @@ def draw_seed(generator: Optional[torch.Generator], device: torch.device | str) 
 
 
 class Stream(NamedTuple):
-    """The draws of one ``sample`` call: its seed, the uniforms per draw (``len(ROLES[filter])``) and the
-    counter of the first draw of the points at hand (a slice of the call's flat (point, draw) list)."""
+    """The draws of one ``sample`` call: its seed, the uniforms per draw (``len(ROLES[filter])``), the
+    counter of the first draw of the points at hand (a slice of the call's flat (point, draw) list), the
+    draws a point (``strata``: their first uniforms are stratified) and the seed of the gradient's draws
+    (``grad_seed``; None: the value's own)."""
 
     seed: int
     roles: int
     first: int = 0
+    strata: int = 1
+    grad_seed: Optional[int] = None
 
     def at(self, first: int) -> "Stream":
         """The same draws from counter ``first`` on (the points of one texture of a batch)."""
         return self._replace(first=first)
 
+    def for_grad(self) -> "Stream":
+        """The draws the gradient comes from: the value's, or the independent set of ``grad_seed``."""
+        return self if self.grad_seed is None else self._replace(seed=self.grad_seed, grad_seed=None)
+
     def uniforms(self, count: int, device: torch.device | str = "cpu") -> Tensor:
         """The uniforms of ``count`` draws from ``first`` on: [count, roles] float64 (``hashed_uniforms``)."""
-        return hashed_uniforms(self.seed, self.first, count, self.roles, device)
+        return hashed_uniforms(self.seed, self.first, count, self.roles, device, self.strata)
 
 
-def stream(filter: str, generator: Optional[torch.Generator], device: torch.device | str) -> Stream:
-    """The draws of one ``sample`` call with ``filter``: one seed drawn from ``generator``, so that a seeded
-    generator repeats the call bit for bit, whatever the thread count. Draw j of flat point i (pixels in
-    batch-major raster order) takes the ``len(ROLES[filter])`` uniforms of counter ``i * k + j``."""
-    return Stream(draw_seed(generator, device), len(ROLES[filter]))
+def stream(filter: str, generator: Optional[torch.Generator], device: torch.device | str, draws: int = 1,
+           decorrelate: bool = False) -> Stream:
+    """The draws of one ``sample`` call with ``filter``, ``draws`` (k) a point: one seed drawn from
+    ``generator`` (a second one for the gradient's draws where ``decorrelate``), so that a seeded generator
+    repeats the call bit for bit, whatever the thread count. Draw j of flat point i (pixels in batch-major
+    raster order) takes the ``len(ROLES[filter])`` uniforms of counter ``i * k + j``, its first in stratum j."""
+    seed = draw_seed(generator, device)
+    return Stream(seed, len(ROLES[filter]), strata=draws,
+                  grad_seed=draw_seed(generator, device) if decorrelate else None)
+
+
+def decorrelated(draw: Callable[[Stream], Tensor], st: Stream) -> Tensor:
+    """``draw(st)``'s value with ``draw(st.for_grad())``'s gradient: the torch path's decorrelation.
+
+    ``draw`` evaluates the estimator on a stream's uniforms; without a
+    ``grad_seed`` (or with no gradient to take) it runs once.
+    """
+    if st.grad_seed is None or not torch.is_grad_enabled():
+        return draw(st)
+    with torch.no_grad():
+        value = draw(st)
+    slope = draw(st.for_grad())
+    # Exactly the value (slope - slope is 0), the slope's gradient.
+    return value + (slope - slope.detach())
 
 
 class LevelDraw(NamedTuple):
@@ -210,81 +268,149 @@ def trilinear_estimate(levels: Levels, uv: Tensor, D: Tensor, draw: LevelDraw, w
 
 class _NativeDraw(torch.autograd.Function):
     """``stochastic_trilinear`` on the native CPU kernel: the draws hashed inside it, read and weighted in one
-    pass; the backward draws them again from the same counters. Arguments as ``trilinear._NativeTaps``, opts
-    (wrap_u, wrap_v, border, stream)."""
+    pass; the backward draws the gradient's set (``Stream.for_grad``) from the same counters, so the node
+    saves nothing but its inputs. uv [M, 2], D [M], levels ``[1, C, H_k, W_k]``, opts (wrap_u, wrap_v,
+    border, stream) -> [C, M]."""
 
     @staticmethod
-    def forward(ctx, uv: Tensor, D: Tensor, axis: Tensor | None, count: Tensor | None, opts: tuple,
-                *levels: Tensor) -> Tensor:
+    def forward(ctx, uv: Tensor, D: Tensor, opts: tuple, *levels: Tensor) -> Tensor:
         wrap_u, wrap_v, border, st = opts
         ctx.opts = opts
-        ctx.save_for_backward(uv, D, axis, count, *levels)
+        ctx.save_for_backward(uv, D, *levels)
         kernel = native.load()
         ctx.read = kernel.ReadOptions(wrap_u=WRAP_CODES[wrap_u], wrap_v=WRAP_CODES[wrap_v], border=border)
-        return kernel.stochastic_forward(*_native_args(levels, uv, D, axis, count), st.seed, st.roles, st.first,
-                                         ctx.read)
+        lv, uv, D, _, _ = _native_args(levels, uv, D, None, None)
+        return kernel.stochastic_forward(lv, uv, D, st.seed, st.first, st.strata, ctx.read)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        uv, D, axis, count, *levels = ctx.saved_tensors
+        uv, D, *levels = ctx.saved_tensors
         wrap_u, wrap_v, border, st = ctx.opts
+        st = st.for_grad()
         need = ctx.needs_input_grad
         if torch.is_grad_enabled():
             # Double backward (create_graph=True): the torch path on the same uniforms.
             return native.double_backward(
                 lambda: stochastic_trilinear(levels, uv, D, st.uniforms(uv.shape[0], uv.device), wrap_u, wrap_v,
-                                             border, axis, count),
-                (uv, D, axis, None, None, *levels), need, grad)
-        taps = axis is not None
+                                             border),
+                (uv, D, None, *levels), need, grad)
         kernel = native.load()
-        gl, guv, gD, gax = kernel.stochastic_backward(
-            *_native_args(levels, uv, D, axis, count), grad, st.seed, st.roles, st.first, ctx.read,
-            kernel.TapNeeds(levels=any(need[5:]), uv=need[0], D=need[1], axis=need[2] and taps))
-        return (guv, gD if need[1] else None, gax if need[2] and taps else None, None, None,
-                *native.level_grads(gl, need[5:], levels))
+        lv, uvc, Dc, _, _ = _native_args(levels, uv, D, None, None)
+        gl, guv, gD = kernel.stochastic_backward(lv, uvc, Dc, grad, st.seed, st.first, st.strata, ctx.read,
+                                                 kernel.TapNeeds(levels=any(need[3:]), uv=need[0], D=need[1],
+                                                                 axis=False))
+        return (guv, gD if need[1] else None, None, *native.level_grads(gl, need[3:], levels))
+
+
+def _kernel_levels(levels: Levels) -> list[Tensor]:
+    """The levels as the native kernels take them (a ``TexturePyramid`` built: its reading node is bypassed)."""
+    return build_levels(levels.texture, len(levels)) if isinstance(levels, TexturePyramid) else list(levels)
 
 
 def stochastic_trilinear(levels: Levels, uv: Tensor, D: Tensor, u: Tensor | Stream, wrap_u: str, wrap_v: str,
-                         border: float, axis: Tensor | None = None, count: Tensor | None = None) -> Tensor:
-    """One draw of the trilinear (or, with ``axis`` / ``count``, the anisotropic) filter per point: [C, M].
+                         border: float) -> Tensor:
+    """One draw of the trilinear filter per point: [C, M].
 
     Args:
-        levels, uv [M, 2], D [M], axis [M, 2], count [M]: as ``trilinear_points``.
-        u: [M, R] float64 uniforms: the probe (anisotropic) first, the level
-            last; or the ``Stream`` they come from (``Stream.uniforms``),
-            which on the CPU the native kernel draws inside its loop (the
-            same uniforms, so the same draws).
+        levels, uv [M, 2], D [M]: as ``trilinear_points``.
+        u: [M, 1] float64 uniforms (the level's); or the ``Stream`` they
+            come from (``Stream.uniforms``), which on the CPU the native
+            kernel draws inside its loop (the same uniforms, so the same
+            draws), the gradient from ``Stream.for_grad``'s.
 
     Returns:
         [C, M], whose expectation over ``u`` is ``trilinear_points``'s value,
-        and whose gradient's expectation is its gradient (texture, uv, D,
-        axis; module docstring for the exception at integer D).
+        and whose gradient's expectation is its gradient (texture, uv, D;
+        module docstring for the exception at integer D).
     """
     if isinstance(u, Stream):
         if native.kernel(uv) is not None:
-            lv = build_levels(levels.texture, len(levels)) if isinstance(levels, TexturePyramid) else list(levels)
-            if count is not None and not bool((count > 1).any()):
-                # One probe everywhere (a round footprint): offset 0, so the kernel skips the probe's uniform
-                # and the axis (whose gradient is then 0, as anisotropic_taps's None gives it). The level keeps
-                # its uniform (the last of u.roles): the same draws.
-                axis = count = None
-            return _NativeDraw.apply(uv, D, axis, count, (wrap_u, wrap_v, float(border), u), *lv)
-        u = u.uniforms(uv.shape[0], uv.device)
-    if count is not None:
-        # Probe i of count, uniformly: the anisotropic weights are all 1 / count, so w / p = 1 and no factor.
-        with torch.no_grad():
-            n = count.to(torch.float64)
-            i = torch.minimum(torch.floor(u[:, 0] * n), n - 1).to(uv.dtype)
-            offset = ((i + 0.5) / count.to(uv.dtype) - 0.5).unsqueeze(-1)
-        uv = torch.addcmul(uv, axis, offset)
+            return _NativeDraw.apply(uv, D, (wrap_u, wrap_v, float(border), u), *_kernel_levels(levels))
+        return decorrelated(lambda s: stochastic_trilinear(levels, uv, D, s.uniforms(uv.shape[0], uv.device),
+                                                           wrap_u, wrap_v, border), u)
     return trilinear_estimate(levels, uv, D, draw_level(D, u[:, -1]), wrap_u, wrap_v, border)
 
 
-def levels_drawn(D: Tensor, levels: int) -> int:
-    """How many pyramid levels a trilinear draw at levels D can read: ``ceil(D) + 1``, at most ``levels``."""
-    if D.numel() == 0:
-        return 1
-    return min(int(torch.ceil(D.detach()).max().item()) + 1, levels)
+def probe_offsets(count: Tensor, u: Tensor) -> Tensor:
+    """The drawn probe's offset along the axis, ``(i + 1/2) / N - 1/2`` of ``i = floor(u N)``: [M] float64.
+
+    count [M] int64 (N >= 1), u [M] float64 in [0, 1): the native op
+    ``probe_offsets`` computes the same (``tap_offset`` in taps.cpp).
+    """
+    n = count.to(torch.float64)
+    i = torch.minimum(torch.floor(u * n), n - 1)
+    return (i + 0.5) / n - 0.5
+
+
+class _NativeProbe(torch.autograd.Function):
+    """``stochastic_anisotropic`` on the native CPU kernels: the probes' offsets hashed by ``probe_offsets``,
+    then the deterministic one-tap trilinear read at ``uv + offset * axis``; the backward reads at the
+    gradient's probes (``Stream.for_grad``) and gives the axis ``offset`` times the tap's uv gradient, as
+    the torch path's ``addcmul`` does. Arguments as ``_NativeDraw``, plus axis [M, 2] and count [M]."""
+
+    @staticmethod
+    def forward(ctx, uv: Tensor, D: Tensor, axis: Tensor, count: Tensor, opts: tuple, *levels: Tensor) -> Tensor:
+        wrap_u, wrap_v, border, st = opts
+        kernel = native.load()
+        ctx.opts = opts
+        # Where D needs a gradient, an integer D = k > 0 reads level k - 1 too (as _NativeTaps).
+        ctx.read = kernel.ReadOptions(wrap_u=WRAP_CODES[wrap_u], wrap_v=WRAP_CODES[wrap_v], border=border,
+                                      d_grad=ctx.needs_input_grad[1])
+        offset = kernel.probe_offsets(count.contiguous(), uv, st.seed, st.first, st.strata)
+        # The value's offsets serve the backward unless it draws its own.
+        ctx.save_for_backward(uv, D, axis, count, offset if st.grad_seed is None else None, *levels)
+        return kernel.forward(*_native_args(levels, torch.addcmul(uv, axis, offset.unsqueeze(-1)), D, None, None),
+                              ctx.read)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        uv, D, axis, count, offset, *levels = ctx.saved_tensors
+        wrap_u, wrap_v, border, st = ctx.opts
+        st = st.for_grad()
+        need = ctx.needs_input_grad
+        if torch.is_grad_enabled():
+            # Double backward (create_graph=True): the torch path on the same uniforms.
+            return native.double_backward(
+                lambda: stochastic_anisotropic(levels, uv, D, st.uniforms(uv.shape[0], uv.device), wrap_u, wrap_v,
+                                               border, axis, count),
+                (uv, D, axis, None, None, *levels), need, grad)
+        kernel = native.load()
+        if offset is None:
+            offset = kernel.probe_offsets(count.contiguous(), uv, st.seed, st.first, st.strata)
+        uvp = torch.addcmul(uv, axis, offset.unsqueeze(-1))
+        gl, guv, gD, _ = kernel.backward(
+            *_native_args(levels, uvp, D, None, None), grad, ctx.read,
+            kernel.TapNeeds(levels=any(need[5:]), uv=need[0] or need[2], D=need[1], axis=False))
+        return (guv if need[0] else None, gD if need[1] else None,
+                guv * offset.unsqueeze(-1) if need[2] else None, None, None,
+                *native.level_grads(gl, need[5:], levels))
+
+
+def stochastic_anisotropic(levels: Levels, uv: Tensor, D: Tensor, u: Tensor | Stream, wrap_u: str, wrap_v: str,
+                           border: float, axis: Tensor, count: Tensor) -> Tensor:
+    """One draw of the anisotropic filter per point: the trilinear tap at one of its probes: [C, M].
+
+    Args:
+        levels, uv [M, 2], D [M], axis [M, 2], count [M]: as
+            ``trilinear_points`` (``anisotropic_taps``'s D, axis and count).
+        u: [M, 1] float64 uniforms (the probe's), or their ``Stream`` (as
+            ``stochastic_trilinear``'s; native: ``_NativeProbe``).
+
+    Returns:
+        [C, M]: ``trilinear(uv + o_i * axis, D)`` of probe ``i = floor(u N)``,
+        whose expectation is ``trilinear_points(..., axis, count)``, for the
+        value and every gradient (texture, uv, D, axis): each probe's weight
+        1 / N is its probability.
+    """
+    if isinstance(u, Stream):
+        if native.kernel(uv) is not None:
+            return _NativeProbe.apply(uv, D, axis, count, (wrap_u, wrap_v, float(border), u),
+                                      *_kernel_levels(levels))
+        return decorrelated(lambda s: stochastic_anisotropic(levels, uv, D, s.uniforms(uv.shape[0], uv.device),
+                                                             wrap_u, wrap_v, border, axis, count), u)
+    with torch.no_grad():
+        offset = probe_offsets(count, u[:, 0]).to(uv.dtype)
+    return trilinear_points(levels, torch.addcmul(uv, axis, offset.unsqueeze(-1)), D, wrap_u, wrap_v, border)
 
 
 # ---------------------------------------------------------------- EWA
@@ -489,7 +615,8 @@ def stochastic_separable(texture: Tensor, uv: Tensor, kind: str, wrap_u: str, wr
                               draw_separable(texture, uv, kind, wrap_u, wrap_v, u))
 
 
-__all__ = ["STOCHASTIC_FILTERS", "ROLES", "hashed_uniforms", "draw_seed", "Stream", "stream", "LevelDraw", "draw_level", "level_weight",
-           "trilinear_estimate", "stochastic_trilinear", "levels_drawn", "TexelDraw", "draw_ewa_texel",
+__all__ = ["STOCHASTIC_FILTERS", "ROLES", "hashed_uniforms", "draw_seed", "Stream", "stream", "decorrelated",
+           "LevelDraw", "draw_level", "level_weight", "trilinear_estimate", "stochastic_trilinear", "probe_offsets",
+           "stochastic_anisotropic", "TexelDraw", "draw_ewa_texel",
            "ewa_texel_estimate", "stochastic_ewa", "SeparableDraw", "draw_separable", "separable_estimate",
            "stochastic_separable", "DEFENSIVE", "defensive", "upper_probability"]

@@ -50,38 +50,27 @@ namespace {
 inline int64_t tap_count(const int64_t* pc, int64_t e) { return pc == nullptr ? 1 : (pc[e] < 1 ? 1 : pc[e]); }
 inline double tap_offset(int64_t i, int64_t N) { return (static_cast<double>(i) + 0.5) / static_cast<double>(N) - 0.5; }
 
-// One stochastic draw of point e (ReadOptions::stochastic; filters/stochastic.py is the reference): the
-// level, floor(D) + 1 with probability p = 3/4 frac(D) + 1/8 where D blends two levels (else floor(D)
-// alone), in r as one read of weight 1; the tap's offset along the axis (a probe i of N drawn uniformly,
-// o = tap_offset(i, N); 0 without counts); and the drawn level's weight in the blend over its probability,
-// w / p (scalar_t, rounded as the torch path rounds it), with its d / dD, +-1 / p. frac, p and w are
-// computed in the texture's dtype as the torch path does, so that a float32 D draws the level it draws.
+// One stochastic trilinear draw of point e (ReadOptions::stochastic; filters/stochastic.py is the
+// reference): the level, floor(D) + 1 with probability p = 3/4 frac(D) + 1/8 where D blends two levels
+// (else floor(D) alone), in r as one read of weight 1; and the drawn level's weight in the blend over its
+// probability, w / p (scalar_t, rounded as the torch path rounds it), with its d / dD, +-1 / p. frac, p and
+// w are computed in the texture's dtype as the torch path does, so that a float32 D draws the level it draws.
 template <typename scalar_t>
 struct Draw {
   Reads r;
-  double offset;
   scalar_t scale;
   double dscale;
 };
 
 template <typename scalar_t>
-DT_INLINE Draw<scalar_t> draw_of(const ReadOptions& o, int64_t e, scalar_t d, int64_t K, const int64_t* pc) {
+DT_INLINE Draw<scalar_t> draw_of(const ReadOptions& o, int64_t e, scalar_t d, int64_t K) {
   Draw<scalar_t> dr;
-  const uint64_t ctr = static_cast<uint64_t>(o.first + e) * static_cast<uint64_t>(o.roles);
-  dr.offset = 0.0;
-  if (pc != nullptr) {
-    const int64_t N = tap_count(pc, e);
-    const double n = static_cast<double>(N);
-    double i = floor_capped(draw_uniform(o.seed, ctr) * n);
-    i = i > n - 1 ? n - 1 : i;
-    dr.offset = tap_offset(static_cast<int64_t>(i), N);
-  }
   const scalar_t k0 = static_cast<scalar_t>(floor_capped(static_cast<double>(d)));
   const scalar_t f = d - k0;
   const scalar_t p = f > 0 ? static_cast<scalar_t>(0.75) * f + static_cast<scalar_t>(0.125) : scalar_t(0);
   // upper is a coin toss: the choices below are table lookups, not branches (measured: the mispredicted
   // branches took as long as the reads).
-  const int upper = draw_uniform(o.seed, ctr + static_cast<uint64_t>(o.roles - 1)) < static_cast<double>(p);
+  const int upper = stratified_uniform(o.seed, static_cast<uint64_t>(o.first + e), o.strata) < static_cast<double>(p);
   int64_t k = static_cast<int64_t>(k0) + upper;
   k = k < 0 ? 0 : (k > K - 1 ? K - 1 : k);
   dr.r.n = 1;
@@ -143,32 +132,29 @@ void forward_range(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<Level
 }
 
 
-// A stochastic draw of one point, placed: its level, the tap's texels on it, w / p and d(w / p) / dD, the
-// probe's offset along the axis; live is false for a non-finite uv (NaN, no gradient).
+// A stochastic draw of one point, placed: its level, the tap's texels on it, w / p and d(w / p) / dD; live
+// is false for a non-finite uv (NaN, no gradient).
 template <typename scalar_t>
 struct Placed {
   Bilinear b;
   int64_t k;
   scalar_t scale;
-  double dscale, offset;
+  double dscale;
   bool live;
 };
 
 template <typename scalar_t>
 DT_INLINE void place_draw(const ReadOptions& o, int64_t e, const std::vector<Level>& L, const scalar_t* puv,
-                          const scalar_t* pd, const int64_t* pc, const scalar_t* pa, int64_t wrap_u, int64_t wrap_v,
-                          Placed<scalar_t>& q) {
+                          const scalar_t* pd, int64_t wrap_u, int64_t wrap_v, Placed<scalar_t>& q) {
   const double u = puv[2 * e], v = puv[2 * e + 1];
   q.live = std::isfinite(u) && std::isfinite(v);
   if (!q.live) return;
-  const Draw<scalar_t> dr = draw_of<scalar_t>(o, e, pd[e], static_cast<int64_t>(L.size()), pc);
+  const Draw<scalar_t> dr = draw_of<scalar_t>(o, e, pd[e], static_cast<int64_t>(L.size()));
   q.k = dr.r.k[0];
   q.scale = dr.scale;
   q.dscale = dr.dscale;
-  q.offset = dr.offset;
-  const double tu = pc ? u + dr.offset * pa[2 * e] : u, tv = pc ? v + dr.offset * pa[2 * e + 1] : v;
   const Level& lv = L[q.k];
-  q.b = taps_folded(fold(tu, wrap_u), fold(tv, wrap_v), lv.h, lv.w, wrap_u, wrap_v);
+  q.b = taps_folded(fold(u, wrap_u), fold(v, wrap_v), lv.h, lv.w, wrap_u, wrap_v);
 }
 
 // The drawn levels are a coin toss per point, so the lines a point reads are seldom those its neighbour just
@@ -196,16 +182,15 @@ DT_INLINE void prefetch_draw(const Placed<scalar_t>& q, int64_t C, const std::ve
 // w / p (the same bits as forward_range with a ReadOptions), by blocks placed one ahead.
 template <typename scalar_t, int CC, bool kBorder>
 void forward_draws(int64_t lo, int64_t hi, int64_t Cdyn, const std::vector<Level>& L,
-                   const std::vector<const scalar_t*>& lp, const scalar_t* puv, const scalar_t* pd,
-                   const int64_t* pc, const scalar_t* pa, scalar_t* po, int64_t M, int64_t wrap_u, int64_t wrap_v,
-                   double border, const ReadOptions& o) {
+                   const std::vector<const scalar_t*>& lp, const scalar_t* puv, const scalar_t* pd, scalar_t* po,
+                   int64_t M, int64_t wrap_u, int64_t wrap_v, double border, const ReadOptions& o) {
   const int64_t C = CC > 0 ? CC : Cdyn;
   const scalar_t bv = static_cast<scalar_t>(border);
   Placed<scalar_t> blk[2][kDrawBlock];
   auto fill = [&](int64_t e0, Placed<scalar_t>* q) {
     const int64_t n = std::min<int64_t>(kDrawBlock, hi - e0);
     for (int64_t i = 0; i < n; ++i) {
-      place_draw(o, e0 + i, L, puv, pd, pc, pa, wrap_u, wrap_v, q[i]);
+      place_draw(o, e0 + i, L, puv, pd, wrap_u, wrap_v, q[i]);
       prefetch_draw<scalar_t>(q[i], C, L, lp, nullptr);
     }
     return n;
@@ -573,8 +558,8 @@ struct DrawGroup8 {
 };
 
 DT_AVX2 void prepare_draws8(int64_t e, int64_t C, const std::vector<Level>& L, const std::vector<const float*>& lp,
-                            const float* puv, const float* pd, const int64_t* pc, const float* pa, int64_t wrap_u,
-                            int64_t wrap_v, const ReadOptions& o, DrawGroup8& g) {
+                            const float* puv, const float* pd, int64_t wrap_u, int64_t wrap_v, const ReadOptions& o,
+                            DrawGroup8& g) {
   const int64_t K = static_cast<int64_t>(L.size());
   alignas(32) double u[8], v[8];
   alignas(32) float sc[8];
@@ -585,11 +570,11 @@ DT_AVX2 void prepare_draws8(int64_t e, int64_t C, const std::vector<Level>& L, c
     const int64_t p = e + j;
     const double pu = puv[2 * p], pv = puv[2 * p + 1];
     if (!std::isfinite(pu) || !std::isfinite(pv)) return;
-    const Draw<float> dr = draw_of<float>(o, p, pd[p], K, pc);
+    const Draw<float> dr = draw_of<float>(o, p, pd[p], K);
     kk[j] = dr.r.k[0];
     sc[j] = dr.scale;
-    u[j] = pc ? pu + dr.offset * pa[2 * p] : pu;
-    v[j] = pc ? pv + dr.offset * pa[2 * p + 1] : pv;
+    u[j] = pu;
+    v[j] = pv;
   }
   // The lanes' levels, without a branch per lane (the levels are coin tosses): the first lane's, and any other.
   g.k[0] = kk[0];
@@ -692,24 +677,22 @@ template <int CC, bool kBorder>
 __attribute__((target("avx2,fma"))) void forward_draws_avx2(int64_t lo, int64_t hi, int64_t C,
                                                             const std::vector<Level>& L,
                                                             const std::vector<const float*>& lp, const float* puv,
-                                                            const float* pd, const int64_t* pc, const float* pa,
-                                                            float* po, int64_t M, int64_t wrap_u, int64_t wrap_v,
-                                                            double border, const ReadOptions& o) {
+                                                            const float* pd, float* po, int64_t M, int64_t wrap_u,
+                                                            int64_t wrap_v, double border, const ReadOptions& o) {
   const __m256 bv = _mm256_set1_ps(static_cast<float>(border));
   const int64_t end = lo + (hi - lo) / 8 * 8;
   groups_of_eight<DrawGroup8>(
       lo, end,
       [&](int64_t e, DrawGroup8& g) __attribute__((target("avx2,fma"))) {
-        prepare_draws8(e, C, L, lp, puv, pd, pc, pa, wrap_u, wrap_v, o, g);
+        prepare_draws8(e, C, L, lp, puv, pd, wrap_u, wrap_v, o, g);
       },
       [&](const DrawGroup8& g, int64_t e) __attribute__((target("avx2,fma"))) {
         if (g.vec)
           read_draws8<kBorder>(g, e, C, L, lp, po, M, bv);
         else
-          forward_draws<float, CC, kBorder>(e, e + 8, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border, o);
+          forward_draws<float, CC, kBorder>(e, e + 8, C, L, lp, puv, pd, po, M, wrap_u, wrap_v, border, o);
       });
-  if (end < hi)
-    forward_draws<float, CC, kBorder>(end, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border, o);
+  if (end < hi) forward_draws<float, CC, kBorder>(end, hi, C, L, lp, puv, pd, po, M, wrap_u, wrap_v, border, o);
 }
 
 // The taps of eight points with N_j taps each along their axes: tap i at uv + o_i * axis with
@@ -841,6 +824,7 @@ Tensor forward(std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis,
   const bool nearest = opts.nearest, d_grad = opts.d_grad;
   auto L = shapes(levels, uv, D, axis, count);
   const int64_t C = levels[0].size(0), M = uv.size(0);
+  DT_CHECK(!opts.stochastic || count.numel() == 0, "mip_read: a stochastic draw takes no counts");
   auto out = empty({C, M}, options_of(uv));
   // A stochastic draw reads one tap on a level drawn point by point: neighbouring points seldom share their
   // level, which the deterministic eight-point paths need; forward_draws(_avx2) read them.
@@ -862,8 +846,8 @@ Tensor forward(std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis,
         constexpr bool kB = decltype(border_)::value;
 #if DT_HAVE_AVX2
         if constexpr (std::is_same_v<scalar_t, float>) {
-          if (sto_simd) return forward_draws_avx2<CC, kB>(lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v,
-                                                          border, opts);
+          if (sto_simd) return forward_draws_avx2<CC, kB>(lo, hi, C, L, lp, puv, pd, po, M, wrap_u, wrap_v, border,
+                                                          opts);
           if (simd) return forward_range_avx2<CC, kB>(lo, hi, C, L, lp, puv, pd, po, M, wrap_u, wrap_v, border,
                                                        nearest, d_grad);
           if (simd_n) return forward_taps_avx2<CC, kB>(lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v,
@@ -871,11 +855,32 @@ Tensor forward(std::vector<Tensor> levels, Tensor uv, Tensor D, Tensor axis,
         }
 #endif
         if (sto)
-          return forward_draws<scalar_t, CC, kB>(lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border,
-                                                 opts);
+          return forward_draws<scalar_t, CC, kB>(lo, hi, C, L, lp, puv, pd, po, M, wrap_u, wrap_v, border, opts);
         forward_range<scalar_t, CC, kB>(lo, hi, C, L, lp, puv, pd, pc, pa, po, M, wrap_u, wrap_v, border, nearest,
                                         d_grad);
       });
+    });
+  });
+  return out;
+}
+
+Tensor probe_offsets(Tensor count, Tensor like, uint64_t seed, int64_t first, int64_t strata) {
+  DT_CHECK(count.dim() == 1 && count.is_contiguous() && count.scalar_type() == kInt64,
+           "probe_offsets: count must be contiguous int64 [M]");
+  DT_CHECK(strata >= 1 && first >= 0, "probe_offsets: expected strata >= 1 and first >= 0");
+  const int64_t M = count.size(0);
+  auto out = empty({M}, options_of(like));
+  DT_DISPATCH_FLOATING_TYPES(like.scalar_type(), "probe_offsets", [&] {
+    const int64_t* pc = count.mutable_data_ptr<int64_t>();
+    scalar_t* po = out.mutable_data_ptr<scalar_t>();
+    parallel_for(0, M, 8192, [&](int64_t lo, int64_t hi) {
+      for (int64_t e = lo; e < hi; ++e) {
+        const int64_t N = tap_count(pc, e);
+        const double n = static_cast<double>(N);
+        double i = floor_capped(stratified_uniform(seed, first + e, strata) * n);
+        i = i > n - 1 ? n - 1 : i;
+        po[e] = static_cast<scalar_t>(tap_offset(static_cast<int64_t>(i), N));
+      }
     });
   });
   return out;
@@ -1006,10 +1011,6 @@ DT_INLINE void backward_draw(const Placed<scalar_t>& q, int64_t e, int64_t Cdyn,
     out.uv[2 * e + 1] = static_cast<scalar_t>(0.0 + dv);
   }
   if (out.D) out.D[e] = static_cast<scalar_t>(dD);
-  if (out.axis) {
-    out.axis[2 * e] = static_cast<scalar_t>(0.0 + q.offset * du);
-    out.axis[2 * e + 1] = static_cast<scalar_t>(0.0 + q.offset * dv);
-  }
 }
 
 // The taps' level-gradient scatter uses bands.h's ScaleBands: a point
@@ -1310,7 +1311,7 @@ struct BackDraw8 {
   Quad8 m;                // the lanes' taps as offsets from lp[k[0]] (the gathers)
   __m256i plane;          // each lane's channel stride
   __m256 fx, fy, scale;
-  __m256d sx[2], sy[2], w[2], h[2], wt[2], dscale[2], offset[2];
+  __m256d sx[2], sy[2], w[2], h[2], wt[2], dscale[2];
 };
 
 // A merged offset (from the first level's texels) back to one on the lane's own level jr.
@@ -1321,10 +1322,10 @@ inline int32_t idx_of_level(int32_t merged, int32_t jr, int64_t diff) {
 template <int CC>
 DT_AVX2 void prepare_back_draws8(const int64_t* e, int64_t Cdyn, const std::vector<Level>& L,
                                  const std::vector<const float*>& lp, const float* puv, const float* pd,
-                                 const int64_t* pc, const float* pa, const Grads<float>& out, int64_t wrap_u,
-                                 int64_t wrap_v, const ReadOptions& o, BackDraw8& g) {
+                                 const Grads<float>& out, int64_t wrap_u, int64_t wrap_v, const ReadOptions& o,
+                                 BackDraw8& g) {
   const int64_t C = CC > 0 ? CC : Cdyn;
-  alignas(32) double u[8], v[8], wt[8], ds[8], off[8];
+  alignas(32) double u[8], v[8], wt[8], ds[8];
   alignas(32) float sc[8];
   int64_t kk[8];
   g.vec = false;
@@ -1333,14 +1334,13 @@ DT_AVX2 void prepare_back_draws8(const int64_t* e, int64_t Cdyn, const std::vect
     const int64_t p = e[j];
     const double pu = puv[2 * p], pv = puv[2 * p + 1];
     if (!std::isfinite(pu) || !std::isfinite(pv)) return;
-    const Draw<float> dr = draw_of<float>(o, p, pd[p], K, pc);
+    const Draw<float> dr = draw_of<float>(o, p, pd[p], K);
     kk[j] = dr.r.k[0];
     sc[j] = dr.scale;
     wt[j] = static_cast<double>(dr.scale);
     ds[j] = dr.dscale;
-    off[j] = dr.offset;
-    u[j] = pc ? pu + dr.offset * pa[2 * p] : pu;
-    v[j] = pc ? pv + dr.offset * pa[2 * p + 1] : pv;
+    u[j] = pu;
+    v[j] = pv;
   }
   g.k[0] = g.k[1] = kk[0];
   for (int j = 1; j < 8; ++j) g.k[1] = kk[j] != kk[0] ? kk[j] : g.k[1];
@@ -1401,7 +1401,6 @@ DT_AVX2 void prepare_back_draws8(const int64_t* e, int64_t Cdyn, const std::vect
     g.h[hh] = _mm256_blendv_pd(_mm256_set1_pd(h0), _mm256_set1_pd(h1), md);
     g.wt[hh] = _mm256_load_pd(wt + 4 * hh);
     g.dscale[hh] = _mm256_load_pd(ds + 4 * hh);
-    g.offset[hh] = _mm256_load_pd(off + 4 * hh);
   }
   g.vec = true;
 }
@@ -1474,7 +1473,7 @@ __attribute__((target("avx2,fma"))) void backward_draws8(const BackDraw8& grp, c
         if (!kBorder || in[jr][q][j]) gq[idx[jr][q][j]] += share[c][q][j];
     }
   }
-  alignas(32) double ou[8], ov[8], oD[8], oau[8], oav[8];
+  alignas(32) double ou[8], ov[8], oD[8];
   const __m256d zd = _mm256_setzero_pd();
   for (int hh = 0; hh < 2; ++hh) {
     const __m128 lo_x = hh == 0 ? _mm256_castps256_ps128(sx) : _mm256_extractf128_ps(sx, 1);
@@ -1488,14 +1487,11 @@ __attribute__((target("avx2,fma"))) void backward_draws8(const BackDraw8& grp, c
     _mm256_store_pd(ou + 4 * hh, _mm256_add_pd(zd, du));
     _mm256_store_pd(ov + 4 * hh, _mm256_add_pd(zd, dv));
     _mm256_store_pd(oD + 4 * hh, dD);
-    _mm256_store_pd(oau + 4 * hh, _mm256_add_pd(zd, _mm256_mul_pd(grp.offset[hh], du)));
-    _mm256_store_pd(oav + 4 * hh, _mm256_add_pd(zd, _mm256_mul_pd(grp.offset[hh], dv)));
   }
   for (int j = 0; j < 8; ++j) {
     if (!(live >> j & 1)) continue;
     if (out.uv) out.uv[2 * e[j]] = static_cast<float>(ou[j]), out.uv[2 * e[j] + 1] = static_cast<float>(ov[j]);
     if (out.D) out.D[e[j]] = static_cast<float>(oD[j]);
-    if (out.axis) out.axis[2 * e[j]] = static_cast<float>(oau[j]), out.axis[2 * e[j] + 1] = static_cast<float>(oav[j]);
   }
 }
 
@@ -1504,13 +1500,13 @@ __attribute__((target("avx2,fma"))) void backward_draws8(const BackDraw8& grp, c
 template <int CC, bool kBorder, typename One>
 __attribute__((target("avx2,fma"))) int64_t backward_draws_range8(
     const int64_t* idx, int64_t n, int64_t C, const std::vector<Level>& L, const std::vector<const float*>& lp,
-    const float* puv, const float* pd, const int64_t* pc, const float* pa, const float* pg, const Grads<float>& out,
-    int64_t gsc, int64_t gsm, int64_t wrap_u, int64_t wrap_v, double border, const ReadOptions& opts, One&& one) {
+    const float* puv, const float* pd, const float* pg, const Grads<float>& out, int64_t gsc, int64_t gsm,
+    int64_t wrap_u, int64_t wrap_v, double border, const ReadOptions& opts, One&& one) {
   const int64_t end = n / 8 * 8;
   groups_of_eight<BackDraw8>(
       0, end,
       [&](int64_t s0, BackDraw8& g) __attribute__((target("avx2,fma"))) {
-        prepare_back_draws8<CC>(idx + s0, C, L, lp, puv, pd, pc, pa, out, wrap_u, wrap_v, opts, g);
+        prepare_back_draws8<CC>(idx + s0, C, L, lp, puv, pd, out, wrap_u, wrap_v, opts, g);
       },
       [&](const BackDraw8& g, int64_t s0) __attribute__((target("avx2,fma"))) {
         if (g.vec)
@@ -1775,6 +1771,7 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
   Tensor guv = need_uv ? zeros({M, 2}, options_of(uv)) : Tensor();
   Tensor gD = need_D ? zeros({M}, options_of(uv)) : Tensor();
   Tensor gax = need_axis ? zeros({M, 2}, options_of(uv)) : Tensor();
+  DT_CHECK(!opts.stochastic || count.numel() == 0, "mip_read: a stochastic draw takes no counts");
   const bool sto = opts.stochastic;  // backward_draw(s8) (why: forward)
   const bool sto_simd = sto && simd_levels(uv, levels);
   const bool simd = !sto && simd_taps(uv, count, levels);
@@ -1797,9 +1794,9 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
       bands = scale_bands(L[0].h);
       std::vector<double> inv_h(K);
       for (int64_t k = 0; k < K; ++k) inv_h[k] = 1.0 / static_cast<double>(L[k].h);
-      // A stochastic draw writes rows of one of the levels and probes the deterministic filter reads (its
-      // level, floor(D) or floor(D) + 1, and its probe on the axis): the deterministic key covers them, and
-      // costs no draw (measured: drawing each point again for its key was as long as its backward).
+      // A stochastic draw writes rows of one of the levels the deterministic filter reads (floor(D) or
+      // floor(D) + 1): the deterministic key covers them, and costs no draw (measured: drawing each point
+      // again for its key was as long as its backward).
       auto key_of = [&](int64_t e, char* rd) {
         const Reads r = reads_of(static_cast<double>(pd[e]), K, nearest, d_grad);
         const int64_t N = tap_count(pc, e);
@@ -1843,11 +1840,11 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
           if (sto_simd) {
             auto one_draw = [&](int64_t e) {
               Placed<scalar_t> q;
-              place_draw(opts, e, L, puv, pd, pc, pa, wrap_u, wrap_v, q);
+              place_draw(opts, e, L, puv, pd, wrap_u, wrap_v, q);
               backward_draw<scalar_t, CC, kB>(q, e, C, L, lp, pg, out, gsc, gsm, border);
             };
-            const int64_t end = backward_draws_range8<CC, kB>(idx, n, C, L, lp, puv, pd, pc, pa, pg, out, gsc, gsm,
-                                                              wrap_u, wrap_v, border, opts, one_draw);
+            const int64_t end = backward_draws_range8<CC, kB>(idx, n, C, L, lp, puv, pd, pg, out, gsc, gsm, wrap_u,
+                                                              wrap_v, border, opts, one_draw);
             for (int64_t i = end; i < n; ++i) one_draw(idx[i]);
             return;
           }
@@ -1858,7 +1855,7 @@ std::tuple<std::vector<Tensor>, Tensor, Tensor, Tensor> backward(
           auto fill = [&](int64_t i0, Placed<scalar_t>* q) {
             const int64_t m = std::min<int64_t>(kDrawBlock, n - i0);
             for (int64_t i = 0; i < m; ++i) {
-              place_draw(opts, idx[i0 + i], L, puv, pd, pc, pa, wrap_u, wrap_v, q[i]);
+              place_draw(opts, idx[i0 + i], L, puv, pd, wrap_u, wrap_v, q[i]);
               prefetch_draw<scalar_t>(q[i], C, L, lp, out.gp.data());
             }
             return m;
