@@ -406,7 +406,8 @@ def _register_fakes() -> None:
 
         def deriv(*shape):  # empty [0] where the derivatives are not asked for
             return like(pos, *shape) if derivatives else like(pos, 0)
-        out = [like(pos, n * layers, dtype=torch.int64), like(pos, n if keep_depth else 0, dtype=torch.float64)]
+        out = [like(pos, n, dtype=torch.int64) for _ in range(layers)]
+        out.append(like(pos, n if keep_depth else 0, dtype=torch.float64))
         for _ in range(layers):
             N = get_ctx().new_dynamic_size()
             out += [like(pos, N, dtype=torch.int64), like(pos, N, 3), deriv(N, 3), deriv(N, 3), like(pos, B, H, W, 3),

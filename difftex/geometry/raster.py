@@ -869,8 +869,8 @@ class _NativeRaster(torch.autograd.Function):
     """Visibility and the differentiable pass of ``layers`` layers in one native call (``raster_fused``: each band
     of rows gets its fragments right after its z-buffer, while its pixels and triangles are in cache).
 
-    Outputs tri_id [layers, B, H, W], then per layer :class:`_NativeFragments`' unpacked outputs; the same values
-    as the separate passes, and each layer's backward as theirs (tri_id and idx take no gradient).
+    Outputs each layer's tri_id [B, H, W], then per layer :class:`_NativeFragments`' unpacked outputs; the same
+    values as the separate passes, and each layer's backward as theirs (tri_id and idx take no gradient).
     """
 
     @staticmethod
@@ -879,18 +879,19 @@ class _NativeRaster(torch.autograd.Function):
         out = mod.raster_fused(pos.detach(), faces, H, W, cull, bits, derivatives=derivatives, layers=layers)
         if len(out) == 2:
             raise _Rejected()
-        tri_id = out[0].view(layers, pos.shape[0], H, W)
-        frags = out[2:]
+        tri_id = [t.view(pos.shape[0], H, W) for t in out[:layers]]
+        frags = out[layers + 1:]
         idxs = frags[0::8]
-        ctx.save_for_backward(pos, faces, tri_id, *idxs)
-        ctx.mod = mod
-        ctx.mark_non_differentiable(tri_id, *idxs)
+        ctx.save_for_backward(pos, faces, *tri_id, *idxs)
+        ctx.mod, ctx.layers = mod, layers
+        ctx.mark_non_differentiable(*tri_id, *idxs)
         ctx.set_materialize_grads(False)
-        return (tri_id, *frags)
+        return (*tri_id, *frags)
 
     @staticmethod
-    def backward(ctx, _gid: None, *grads: Optional[Tensor]):
-        pos, faces, tri_id, *idxs = ctx.saved_tensors
+    def backward(ctx, *grads: Optional[Tensor]):
+        pos, faces, *saved = ctx.saved_tensors
+        tri_id, idxs, grads = saved[:ctx.layers], saved[ctx.layers:], grads[ctx.layers:]
         total = None
         for k, idx in enumerate(idxs):
             g = _fragments_grad(ctx.mod, False, pos, faces, tri_id[k], idx, grads[8 * k + 1:8 * k + 8])
@@ -908,12 +909,13 @@ def _rasterize_fused(pos: Tensor, faces: Tensor, resolution: Sequence[int], cull
     H, W = _check_resolution(resolution)
     _check_memory(pos.shape[0], H, W, pos.dtype)
     try:
-        tri_id, *out = _NativeRaster.apply(pos, faces.contiguous(), (H, W, cull_backfaces, _subpixel_bits(H, W), layers),
-                                           mod, derivatives)
+        out = _NativeRaster.apply(pos, faces.contiguous(), (H, W, cull_backfaces, _subpixel_bits(H, W), layers),
+                                  mod, derivatives)
     except _Rejected:
         _check_pos(pos)
         check_index("faces", faces, pos.shape[1], "number of vertices", pos.device)
         raise RuntimeError("rasterize: the native kernel rejected its input") from None  # not reached
+    tri_id, out = out[:layers], out[layers:]
     result = []
     for k in range(layers):
         idx, bary_c, dx_c, dy_c, bary, depth, bary_dx, bary_dy = out[8 * k:8 * k + 8]

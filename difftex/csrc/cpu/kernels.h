@@ -100,8 +100,9 @@ std::vector<Tensor> raster_fragments(Tensor pos, Tensor faces, Tensor tri_id,
                                             bool packed, int64_t offset, bool derivatives);
 // raster.cpp: raster (no floor, no count) and raster_fragments (unpacked) of
 // each of its layers in one pass, each band's fragments computed right
-// after its z-buffer (k-buffer): (ids [K * B * H * W], depth [B * H * W]
-// float64 or, without keep_depth, empty, then per layer raster_fragments'
+// after its z-buffer (k-buffer): (ids [B * H * W] of each of the K layers,
+// depth [B * H * W] float64 or, without keep_depth, empty, then per layer
+// raster_fragments'
 // outputs: idx, bary, bary_dx, bary_dy [N, 3], bary [B, H, W, 3], depth
 // [B, H, W], bary_dx, bary_dy [B, H, W, 3]); the same values as the
 // separate calls. Just (ids, depth), both empty, where raster would return

@@ -702,7 +702,7 @@ __attribute__((target("avx2,fma"))) void exact_row_avx2(double* zb, int64_t* ib,
 
 // The fused pass (raster_fused): called by the thread that resolved band
 // R0 .. R1 - 1 of batch item bi, right after its rows of ids (all_ids:
-// the layer's whole [B * H * W] output) are written, while they and the
+// the layer's whole [B * H * W] ids) are written, while they and the
 // band's triangles are in cache; once per layer.
 struct BandSink {
   virtual void band(const int64_t* all_ids, int64_t bi, int64_t R0, int64_t R1, int64_t layer) = 0;
@@ -711,23 +711,26 @@ struct BandSink {
   ~BandSink() = default;
 };
 
-std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull, int64_t bits,
-                                       Tensor floor_z, Tensor floor_id, bool count, int64_t layers, BandSink* sink,
-                                       bool keep_depth);
+// The ids: with split, one [B * H * W] tensor a layer, else one
+// [K * B * H * W] tensor, layer-major. Empty tensors on bad input.
+std::tuple<std::vector<Tensor>, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull,
+                                                    int64_t bits, Tensor floor_z, Tensor floor_id, bool count,
+                                                    int64_t layers, BandSink* sink, bool keep_depth, bool split);
 
 }  // namespace
 
 std::tuple<Tensor, Tensor> raster(Tensor pos, Tensor faces, int64_t H, int64_t W,
                                                 bool cull, int64_t bits, Tensor floor_z,
                                                 Tensor floor_id, bool count, int64_t layers) {
-  return raster_impl(pos, faces, H, W, cull, bits, floor_z, floor_id, count, layers, nullptr, true);
+  auto [ids, depth] = raster_impl(pos, faces, H, W, cull, bits, floor_z, floor_id, count, layers, nullptr, true, false);
+  return {ids[0], depth};
 }
 
 namespace {
 
-std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull, int64_t bits,
-                                       Tensor floor_z, Tensor floor_id, bool count, int64_t layers, BandSink* sink,
-                                       bool keep_depth) {
+std::tuple<std::vector<Tensor>, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int64_t W, bool cull,
+                                                    int64_t bits, Tensor floor_z, Tensor floor_id, bool count,
+                                                    int64_t layers, BandSink* sink, bool keep_depth, bool split) {
   DT_CHECK(pos.is_cpu() && (pos.scalar_type() == kFloat64 || pos.scalar_type() == kFloat32) &&
                   pos.dim() == 3 && pos.size(2) == 4,
               "raster: pos must be a CPU float32 or float64 tensor [B, V, 4]");
@@ -751,15 +754,22 @@ std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int6
     floor_z = contig(floor_z);
     floor_id = contig(floor_id);
   }
-  // K > 1: ids layer-major [K, B * H * W] (each layer contiguous) and the
-  // depth of the K-th layer only (the floor of any further layer).
-  auto ids = empty({K * B * HW}, kInt64);
+  // K > 1: the ids of each layer contiguous and the depth of the K-th
+  // layer only (the floor of any further layer). Split, each layer is an
+  // allocation of its own: four layers at 1024^2 in one were 32 MiB,
+  // glibc's largest mmap threshold, so every call mapped fresh memory and
+  // took ~8,200 page faults to fill it (16 of 69 ms, one thread).
+  std::vector<Tensor> ids;
+  std::vector<int64_t*> lay(K);  // layer k's [B * H * W] ids
+  for (int64_t k = 0; k < K; ++k) {
+    if (split || k == 0) ids.push_back(empty({(split ? 1 : K) * B * HW}, kInt64));
+    lay[k] = split ? ids[k].mutable_data_ptr<int64_t>() : ids[0].mutable_data_ptr<int64_t>() + k * B * HW;
+  }
   DT_CHECK(!sink || (!has_floor && !count), "raster: the fused pass takes no floor and no count");
   DT_CHECK(keep_depth || sink, "raster: the depth is kept unless fused");
   auto depth = empty({keep_depth ? B * HW : 0}, kFloat64);
   const double* fz = has_floor ? floor_z.mutable_data_ptr<double>() : nullptr;
   const int64_t* fi = has_floor ? floor_id.mutable_data_ptr<int64_t>() : nullptr;
-  int64_t* out_id = ids.mutable_data_ptr<int64_t>();
   double* out_z = keep_depth ? depth.mutable_data_ptr<double>() : nullptr;
   const int64_t S = bits;
   const double sx = S > 0 ? double(W << (S - 1)) : 0.0, sy = S > 0 ? -double(H << (S - 1)) : 0.0;
@@ -891,7 +901,7 @@ std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int6
           for (int32_t b = t.band0; b <= t.band1; ++b) ++cnt[ch * nb + b];
       }
     });
-    if (bad.load()) return {empty({0}, kInt64), empty({0}, kFloat64)};
+    if (bad.load()) return {{empty({0}, kInt64)}, empty({0}, kFloat64)};
     std::vector<int64_t> start(nb + 1, 0);
     int64_t total = 0;
     for (int64_t b = 0; b < nb; ++b) {
@@ -910,7 +920,6 @@ std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int6
           for (int32_t b = t.band0; b <= t.band1; ++b) list[cnt[ch * nb + b]++] = &t;
     });
     // Bands: each thread owns its rows of the output.
-    int64_t* oid = out_id + bi * HW;
     double* oz = out_z ? out_z + bi * HW : nullptr;
     const double* bfz = has_floor ? fz + bi * HW : nullptr;
     const int64_t* bfi = has_floor ? fi + bi * HW : nullptr;
@@ -923,13 +932,14 @@ std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int6
         // Local copies of what the loops read: through the captured
         // references the compiler must assume that the id and depth stores
         // may change them, and reloaded them for every pixel.
-        const int64_t Wl = W, Hl = H, Kl = K, Sl = S, HWl = HW, Bl = B, bil = bi;
+        const int64_t Wl = W, Hl = H, Kl = K, Sl = S, HWl = HW, bil = bi;
         const bool countl = count, floorl = has_floor;
         const double *const xsl = xs.data(), *const ysl = ys.data(), *const bfzl = bfz;
         const int64_t *const startl = start.data(), *const bfil = bfi;
         const Live* const* const listl = list.get();
         double* const ozl = oz;
-        int64_t *const oidl = oid, *const out_idl = out_id;
+        int64_t* const* const layl = lay.data();
+        int64_t* const oidl = lay[0] + bil * HWl;
         const Ctx cxl = cx;
         BandSink* const sinkl = sink;
         Exact e;
@@ -1068,11 +1078,11 @@ std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int6
           if (Kl > 1) {
             for (int64_t p = R0 * Wl; p < R1 * Wl; ++p) {
               const int64_t* is = ib + (p - p0) * Kl;
-              for (int64_t k = 0; k < Kl; ++k) out_idl[k * Bl * HWl + bil * HWl + p] = is[k] == kEmpty ? -1 : is[k];
+              for (int64_t k = 0; k < Kl; ++k) layl[k][bil * HWl + p] = is[k] == kEmpty ? -1 : is[k];
               if (ozl) ozl[p] = zb[(p - p0) * Kl + Kl - 1];
             }
             if (sinkl)
-              for (int64_t k = 0; k < Kl; ++k) sinkl->band(out_idl + k * Bl * HWl, bil, R0, R1, k);
+              for (int64_t k = 0; k < Kl; ++k) sinkl->band(layl[k], bil, R0, R1, k);
           } else if (countl) {
             std::memcpy(oidl + R0 * Wl, ib, sizeof(int64_t) * (R1 - R0) * Wl);
           } else {
@@ -1081,7 +1091,7 @@ std::tuple<Tensor, Tensor> raster_impl(Tensor pos, Tensor faces, int64_t H, int6
               oidl[p] = i == kEmpty ? -1 : i;
             }
             if (ozl) std::memcpy(ozl + R0 * Wl, zb, sizeof(double) * (R1 - R0) * Wl);
-            if (sinkl) sinkl->band(out_idl, bil, R0, R1, 0);
+            if (sinkl) sinkl->band(layl[0], bil, R0, R1, 0);
           }
         }
       });
@@ -1468,12 +1478,13 @@ std::vector<Tensor> raster_fused(Tensor pos, Tensor faces, int64_t H, int64_t W,
     }
     sink.chunks.resize(K * B * nb);
     auto [ids, zbuf] = raster_impl(pos, faces, H, W, cull, bits, empty({0}, kFloat64), empty({0}, kInt64), false, K,
-                                   &sink, keep_depth);
-    if (ids.numel() == 0 && B * H * W > 0) {  // a non-finite position or a bad index: the caller names it
-      out = {ids, zbuf};
+                                   &sink, keep_depth, true);
+    if (ids[0].numel() == 0 && B * H * W > 0) {  // a non-finite position or a bad index: the caller names it
+      out = {ids[0], zbuf};
       return;
     }
-    out = {ids, zbuf};
+    out = ids;
+    out.push_back(zbuf);
     const int64_t nc = B * nb;
     for (int64_t k = 0; k < K; ++k) {
       const auto* chunks = sink.chunks.data() + k * nc;
